@@ -1,0 +1,54 @@
+"""The ``statfit`` command: sub-commands and the one place where errors become exit code 2."""
+from __future__ import annotations
+
+import sys
+import warnings
+
+import click
+import typer
+
+from statfit.errors import StatfitError
+from statfit_cli import demo, evaluate, model, register, synth
+
+app = typer.Typer(
+    help="Fit a template mesh to limited observations (a partial scan) with statistical gradient filtering.\n\n"
+         "Start with `statfit demo`; `statfit COMMAND --help` explains each command.",
+    no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False, rich_markup_mode=None,
+)
+app.command("register")(register.register)
+app.command("demo")(demo.demo)
+app.command("eval")(evaluate.evaluate)
+app.add_typer(synth.app, name="synth")
+app.add_typer(model.app, name="model")
+
+
+def _fail(message: str) -> None:
+    print(f"statfit: error: {message}", file=sys.stderr)
+    raise SystemExit(2)
+
+
+def main() -> None:
+    """Run the CLI; user errors print one line on stderr and exit with code 2."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # library warnings are printed by the commands themselves
+        try:
+            code = app(standalone_mode=False)
+        except StatfitError as exc:
+            _fail(str(exc))
+        except click.exceptions.NoArgsIsHelpError:
+            raise SystemExit(0)
+        except click.UsageError as exc:
+            _fail(exc.format_message().replace("\n", " "))
+        except click.exceptions.Abort:
+            _fail("aborted")
+        except click.ClickException as exc:
+            _fail(exc.format_message())
+        except KeyboardInterrupt:
+            _fail("interrupted")
+        except BrokenPipeError:
+            raise SystemExit(1)
+    raise SystemExit(code if isinstance(code, int) else 0)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,113 @@
+"""The one fitting loop shared by every job and method."""
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from typing import Callable, Protocol
+
+import torch
+
+from statfit.errors import DivergenceError
+
+
+class Objective(Protocol):
+    """A data term: ``prepare`` does non-differentiable work (correspondences, visibility),
+    ``__call__`` returns named loss terms (scalars) differentiable w.r.t. ``vertices``."""
+
+    def prepare(self, vertices: torch.Tensor, iteration: int) -> None: ...
+
+    def __call__(self, vertices: torch.Tensor) -> dict[str, torch.Tensor]: ...
+
+
+class Parametrization(Protocol):
+    def parameters(self) -> list[torch.Tensor]: ...
+
+    def vertices(self) -> torch.Tensor: ...
+
+    def pull_gradient(self, grad_x: torch.Tensor, x: torch.Tensor) -> dict[str, float]: ...
+
+
+@dataclass
+class StageTimer:
+    """Accumulates wall time per named stage; ``sync`` waits for the GPU so times are honest."""
+
+    sync: bool = False
+    seconds: dict[str, float] = field(default_factory=lambda: defaultdict(float))
+
+    def __call__(self, name: str):
+        return _Timed(self, name)
+
+
+class _Timed:
+    def __init__(self, timer: StageTimer, name: str):
+        self.timer, self.name = timer, name
+
+    def __enter__(self):
+        self.start = time.perf_counter()
+
+    def __exit__(self, *exc):
+        if self.timer.sync and torch.cuda.is_available():
+            torch.cuda.synchronize()
+        self.timer.seconds[self.name] += time.perf_counter() - self.start
+
+
+@dataclass
+class FitResult:
+    vertices: torch.Tensor
+    loss: dict[str, float]
+    iterations: int
+    seconds: float
+
+
+Progress = Callable[[int, dict[str, float]], None]
+
+
+def run_fit(param: Parametrization, optimizer: torch.optim.Optimizer, objective: Objective, iterations: int,
+            *, on_record: Progress | None = None, record_every: int = 10, timer: StageTimer | None = None,
+            first_iteration: int = 0) -> FitResult:
+    """Minimise ``objective`` over ``param`` for ``iterations`` steps.
+
+    ``on_record(iteration, terms)`` is called every ``record_every`` iterations and at the end.
+    Raises DivergenceError naming the iteration when the loss stops being finite.
+    """
+    timer = timer or StageTimer()
+    # Filtered gradients decay to subnormal floats far from the data; on CPUs those are ~100x slower.
+    flushed = torch.set_flush_denormal(True)
+    try:
+        return _loop(param, optimizer, objective, iterations, on_record, record_every, timer, first_iteration)
+    finally:
+        if flushed:
+            torch.set_flush_denormal(False)
+
+
+def _loop(param, optimizer, objective, iterations, on_record, record_every, timer, first_iteration) -> FitResult:
+    start = time.perf_counter()
+    terms: dict[str, float] = {}
+    for step in range(iterations):
+        it = first_iteration + step
+        with timer("filter"):
+            x = param.vertices()
+        with timer("correspondences"):
+            objective.prepare(x, it)
+        x.requires_grad_(True)
+        with timer("loss"):
+            losses = objective(x)
+            loss = sum(losses.values())
+        with timer("backward"):
+            loss.backward()
+        with timer("filter"):
+            prior = param.pull_gradient(x.grad, x)
+        with timer("step"):
+            optimizer.step()
+        if step % record_every == 0 or step == iterations - 1:
+            terms = {k: float(v.detach()) for k, v in losses.items()} | prior
+            terms["total"] = sum(terms.values())
+            if not torch.isfinite(torch.tensor(terms["total"])):
+                raise DivergenceError(f"the fit diverged at iteration {it}: the loss is {terms['total']}")
+            if on_record:
+                on_record(it, terms)
+    final = param.vertices()
+    if not torch.isfinite(final).all():
+        raise DivergenceError(f"the fit diverged by iteration {first_iteration + iterations - 1}: vertices are not finite")
+    return FitResult(final, terms, iterations, time.perf_counter() - start)

@@ -1,0 +1,1 @@
+"""Reading and writing files: meshes and point clouds, JSON-lines logs."""

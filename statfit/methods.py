@@ -1,0 +1,124 @@
+"""Fitting methods: settings, presets, and construction of (parametrisation, optimiser).
+
+A *pipeline* is a sequence of stages; each stage's result starts the next. The paper-faithful
+methods are one stage each; ``default`` is the pipeline chosen by the study in docs/benchmarks.md.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+import torch
+
+from statfit.errors import StatfitError
+from statfit.filters import HybridFilter, IdentityFilter, LaplacianFilter, StatisticalFilter
+from statfit.optim import UniformAdam
+from statfit.parametrize import FilteredVertices, PCACoefficients, RegularizedVertices
+
+METHODS = ("statistical", "laplacian", "hybrid", "pca", "regularized", "none")
+
+
+@dataclass(frozen=True)
+class Settings:
+    """One optimisation stage. ``beta`` is the filter's β (statistical, hybrid) or the
+    regulariser's weight (regularized); ``mode_gain`` γ sets the filter's gain on mode j to
+    (std_j / std_1)^γ (0: the paper's filter, gain 1 on every mode)."""
+
+    method: str
+    iterations: int
+    lr: float
+    beta: float = 30.0
+    power: float = 1.0
+    lam: float = 19.0
+    laplacian: str = "uniform"
+    solver: str = "cholespy"
+    mode_gain: float = 0.0
+    betas: tuple[float, float] = (0.9, 0.999)
+
+    def describe(self) -> dict[str, Any]:
+        return {k: v for k, v in self.__dict__.items()}
+
+
+# The paper's settings (Nicolet-style UniformAdam, lr 0.01; β 30 filter / 10 regulariser; λ 19).
+PAPER: dict[str, Settings] = {
+    "statistical": Settings("statistical", 500, 0.01, beta=30.0),
+    "laplacian": Settings("laplacian", 500, 0.01, lam=19.0),
+    "hybrid": Settings("hybrid", 500, 0.01, beta=30.0, lam=19.0),
+    "regularized": Settings("regularized", 500, 0.01, beta=10.0),
+    "pca": Settings("pca", 500, 5.0),
+    "none": Settings("none", 500, 0.01),
+}
+
+# Our defaults, from the registration study (docs/benchmarks.md).
+TUNED: dict[str, Settings] = dict(PAPER)
+
+PIPELINES: dict[str, tuple[Settings, ...]] = {
+    "default": (Settings("statistical", 2000, 0.01, beta=300.0),),
+}
+
+
+@dataclass(frozen=True)
+class FitSpace:
+    """The model in the fit frame, as tensors: mean (N, 3), basis_t = Uᵀ (K, 3N), std (K,)."""
+
+    mean: torch.Tensor
+    basis_t: torch.Tensor
+    std: torch.Tensor
+    faces: np.ndarray
+
+
+def resolve(method: str, preset: str = "tuned", **overrides: Any) -> tuple[Settings, ...]:
+    """The stages for ``method`` under ``preset`` ('tuned' or 'paper'), with ``overrides``
+    (non-None values) applied to every stage."""
+    if preset not in ("tuned", "paper"):
+        raise StatfitError(f"unknown preset {preset!r}; choose 'tuned' or 'paper'")
+    if method in PIPELINES and preset == "tuned":
+        stages = PIPELINES[method]
+    elif method in METHODS:
+        stages = ((PAPER if preset == "paper" else TUNED)[method],)
+    else:
+        raise StatfitError(f"unknown method {method!r}; choose one of {', '.join((*PIPELINES, *METHODS))}")
+    changes = {k: v for k, v in overrides.items() if v is not None}
+    if changes.get("iterations", 1) < 1:
+        raise StatfitError("--iterations must be at least 1")
+    if len(stages) > 1 and "iterations" in changes:
+        last = stages[-1]
+        total = sum(s.iterations for s in stages)
+        stages = tuple(replace(s, iterations=max(1, round(s.iterations * changes["iterations"] / total)))
+                       for s in stages[:-1]) + (last,)
+        spent = sum(s.iterations for s in stages[:-1])
+        stages = stages[:-1] + (replace(last, iterations=max(1, changes["iterations"] - spent)),)
+        changes.pop("iterations")
+    return tuple(replace(s, **changes) for s in stages)
+
+
+def build(settings: Settings, space: FitSpace, x0: torch.Tensor):
+    """Parametrisation and optimiser for one stage, starting from vertices ``x0`` (N, 3)."""
+    if settings.method == "pca":
+        scaled = space.basis_t * space.std[:, None]
+        start = torch.mv(space.basis_t, (x0 - space.mean).reshape(-1)) / space.std
+        param = PCACoefficients(space.mean, scaled, start)
+        return param, torch.optim.Adam(param.parameters(), lr=settings.lr, betas=settings.betas)
+    if settings.method == "regularized":
+        param = RegularizedVertices(x0, space.mean, space.basis_t, settings.beta)
+        return param, UniformAdam(param.parameters(), lr=settings.lr, betas=settings.betas)
+    if settings.method == "none":
+        param = FilteredVertices(x0, IdentityFilter())
+        return param, torch.optim.Adam(param.parameters(), lr=settings.lr, betas=settings.betas)
+    param = FilteredVertices(x0, make_filter(settings, space, x0))
+    return param, UniformAdam(param.parameters(), lr=settings.lr, betas=settings.betas)
+
+
+def make_filter(settings: Settings, space: FitSpace, x0: torch.Tensor):
+    """The gradient filter of a filtered method."""
+    gain = (space.std / space.std[0]) ** settings.mode_gain if settings.mode_gain else None
+    if settings.method == "statistical":
+        return StatisticalFilter(space.basis_t, settings.beta, settings.power, gain)
+    smooth = LaplacianFilter(x0.detach().cpu().double().numpy(), space.faces, settings.lam, settings.laplacian,
+                             settings.solver, x0.dtype, x0.device)
+    if settings.method == "laplacian":
+        return smooth
+    if settings.method == "hybrid":
+        return HybridFilter(space.basis_t, settings.beta, smooth, settings.power, gain)
+    raise StatfitError(f"method {settings.method!r} has no filter")

@@ -1,0 +1,138 @@
+"""StatModel: a template mesh plus a linear shape space, loaded from the npz contract.
+
+npz keys: ``v_template (N,3)``, ``faces (F,3)``, ``shapedirs (N,3,K)`` (deformation directions
+of any scale, not necessarily orthogonal: a shape is ``v_template + shapedirs @ c``, c ~ N(0, I));
+optional ``landmarks (L,)`` vertex indices and ``region_<name>`` vertex-index arrays.
+
+The basis used by the filters is derived by SVD: ``shapedirs`` flattened to (3N, K) equals
+``U diag(std) Vᵀ``; ``U`` (3N, K) is orthonormal and ``std`` are the principal standard deviations.
+"""
+from __future__ import annotations
+
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from statfit.errors import StatfitError
+
+
+@dataclass(frozen=True)
+class StatModel:
+    """A template mesh with an orthonormal PCA basis.
+
+    template: (N, 3) float64 mean shape; faces: (F, 3) int64;
+    basis: (3N, K) float64 orthonormal columns, vertex-major flattening (x0, y0, z0, x1, ...);
+    std: (K,) float64 principal standard deviations, decreasing.
+    """
+
+    template: np.ndarray
+    faces: np.ndarray
+    basis: np.ndarray
+    std: np.ndarray
+    landmarks: np.ndarray | None = None
+    regions: dict[str, np.ndarray] = field(default_factory=dict)
+    source: str = "<arrays>"
+
+    @property
+    def num_vertices(self) -> int:
+        return self.template.shape[0]
+
+    @property
+    def num_modes(self) -> int:
+        return self.basis.shape[1]
+
+    def truncated(self, k: int) -> "StatModel":
+        """The model with only its first ``k`` modes."""
+        if not 1 <= k <= self.num_modes:
+            raise StatfitError(f"--k must be between 1 and {self.num_modes}, got {k}")
+        return StatModel(self.template, self.faces, self.basis[:, :k], self.std[:k],
+                         self.landmarks, self.regions, self.source)
+
+    def shape(self, coeffs: np.ndarray) -> np.ndarray:
+        """Vertices (N, 3) for coefficients in standard-deviation units, (K,)."""
+        coeffs = np.asarray(coeffs, dtype=np.float64)
+        return self.template + (self.basis @ (self.std * coeffs)).reshape(-1, 3)
+
+    def sample(self, rng: np.random.Generator, sigma: float = 1.0) -> np.ndarray:
+        """A random shape (N, 3) with coefficients ~ N(0, sigma²)."""
+        return self.shape(sigma * rng.standard_normal(self.num_modes))
+
+    def variance_explained(self) -> np.ndarray:
+        """Cumulative fraction of the model's variance explained by the first k modes, (K,)."""
+        var = self.std**2
+        return np.cumsum(var) / var.sum()
+
+
+def model_from_arrays(v_template: np.ndarray, faces: np.ndarray, shapedirs: np.ndarray,
+                      landmarks: np.ndarray | None = None,
+                      regions: dict[str, np.ndarray] | None = None,
+                      source: str = "<arrays>") -> StatModel:
+    """Validate raw arrays and derive the orthonormal basis (SVD of the flattened shapedirs)."""
+    v_template = _float_array(v_template, "v_template")
+    faces = np.asarray(faces)
+    shapedirs = _float_array(shapedirs, "shapedirs")
+    if v_template.ndim != 2 or v_template.shape[1] != 3 or v_template.shape[0] < 3:
+        raise StatfitError(f"{source}: v_template must have shape (N, 3), got {v_template.shape}")
+    n = v_template.shape[0]
+    if faces.ndim != 2 or faces.shape[1] != 3 or faces.shape[0] == 0:
+        raise StatfitError(f"{source}: faces must have shape (F, 3), got {faces.shape}")
+    if not np.issubdtype(faces.dtype, np.integer):
+        raise StatfitError(f"{source}: faces must be integers, got {faces.dtype}")
+    if faces.min() < 0 or faces.max() >= n:
+        raise StatfitError(f"{source}: face indices must lie in [0, {n}), got [{faces.min()}, {faces.max()}]")
+    if shapedirs.ndim != 3 or shapedirs.shape[:2] != (n, 3) or shapedirs.shape[2] == 0:
+        raise StatfitError(f"{source}: shapedirs must have shape ({n}, 3, K), got {shapedirs.shape}")
+    flat = shapedirs.reshape(3 * n, -1)
+    u, s, _ = np.linalg.svd(flat, full_matrices=False)
+    keep = s > s[0] * 1e-10
+    if not keep.any():
+        raise StatfitError(f"{source}: shapedirs are all zero")
+    regions = {k: _index_array(v, n, f"{source}: region_{k}") for k, v in (regions or {}).items()}
+    if landmarks is not None:
+        landmarks = _index_array(landmarks, n, f"{source}: landmarks")
+    return StatModel(v_template, faces.astype(np.int64), u[:, keep], s[keep], landmarks, regions, source)
+
+
+def load_model(path: str | Path, k: int | None = None) -> StatModel:
+    """Load and validate a model npz; keep the first ``k`` modes when given."""
+    path = Path(path)
+    if not path.is_file():
+        raise StatfitError(f"model file not found: {path}")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {key: data[key] for key in data.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        raise StatfitError(f"cannot read model {path}: {exc}") from None
+    missing = [key for key in ("v_template", "faces", "shapedirs") if key not in arrays]
+    if missing:
+        raise StatfitError(f"model {path} lacks the key(s) {', '.join(missing)}")
+    regions = {key[len("region_"):]: arr for key, arr in arrays.items() if key.startswith("region_")}
+    model = model_from_arrays(arrays["v_template"], arrays["faces"], arrays["shapedirs"],
+                              arrays.get("landmarks"), regions, source=str(path))
+    return model.truncated(k) if k is not None else model
+
+
+def default_model_path() -> Path:
+    """Path of the embedded synthetic default model."""
+    from statfit_data import default_model_path as path
+
+    return path()
+
+
+def _float_array(arr: np.ndarray, name: str) -> np.ndarray:
+    arr = np.asarray(arr)
+    if not np.issubdtype(arr.dtype, np.number):
+        raise StatfitError(f"{name} must be numeric, got {arr.dtype}")
+    arr = arr.astype(np.float64)
+    if not np.isfinite(arr).all():
+        raise StatfitError(f"{name} contains NaN or infinite values")
+    return arr
+
+
+def _index_array(arr: np.ndarray, n: int, name: str) -> np.ndarray:
+    arr = np.asarray(arr).reshape(-1)
+    if not np.issubdtype(arr.dtype, np.integer) or (arr.size and (arr.min() < 0 or arr.max() >= n)):
+        raise StatfitError(f"{name} must be vertex indices in [0, {n})")
+    return arr.astype(np.int64)

@@ -1,0 +1,1 @@
+"""Data terms: callables ``objective(vertices, iteration) -> dict[str, Tensor]`` of loss terms."""

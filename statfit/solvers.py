@@ -1,0 +1,77 @@
+"""Prefactored sparse SPD solvers: factorise once, then each call only solves.
+
+All take and return torch tensors of shape (n, c) on the solver's device. Measured choice of the
+default: see docs/benchmarks.md (``cholespy``, the solver largesteps uses, was fastest).
+"""
+from __future__ import annotations
+
+from typing import Literal
+
+import igl
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+import torch
+
+SolverName = Literal["cholespy", "scipy-lu", "igl"]
+SOLVERS: tuple[str, ...] = ("cholespy", "scipy-lu", "igl")
+
+
+class CholespySolver:
+    """Sparse Cholesky (CHOLMOD on CPU, cuSolver-free kernels on CUDA) from the cholespy package."""
+
+    def __init__(self, matrix: sp.spmatrix, dtype: torch.dtype, device: torch.device):
+        import cholespy
+
+        coo = sp.coo_matrix(matrix)
+        cls = cholespy.CholeskySolverF if dtype == torch.float32 else cholespy.CholeskySolverD
+        self.dtype, self.device = dtype, device
+        ii = torch.as_tensor(coo.row.astype(np.int32), device=device)
+        jj = torch.as_tensor(coo.col.astype(np.int32), device=device)
+        vals = torch.as_tensor(coo.data.astype(np.float64), device=device)
+        self._solver = cls(coo.shape[0], ii, jj, vals, cholespy.MatrixType.COO)
+
+    def solve(self, rhs: torch.Tensor) -> torch.Tensor:
+        rhs = rhs.to(self.dtype).contiguous()
+        out = torch.empty_like(rhs)
+        self._solver.solve(rhs, out)
+        return out
+
+
+class ScipyLUSolver:
+    """scipy's SuperLU factorisation (``splu``); solves on the CPU."""
+
+    def __init__(self, matrix: sp.spmatrix, dtype: torch.dtype, device: torch.device):
+        self.dtype, self.device = dtype, device
+        self._lu = spla.splu(sp.csc_matrix(matrix, dtype=np.float64))
+
+    def solve(self, rhs: torch.Tensor) -> torch.Tensor:
+        out = self._lu.solve(rhs.detach().cpu().double().numpy())
+        return torch.as_tensor(out, dtype=self.dtype, device=self.device)
+
+
+class IglSolver:
+    """libigl's ``min_quad_with_fixed`` (Eigen sparse LLT); solves on the CPU in float64."""
+
+    def __init__(self, matrix: sp.spmatrix, dtype: torch.dtype, device: torch.device):
+        self.dtype, self.device = dtype, device
+        self._data = igl.min_quad_with_fixed_data()
+        empty = sp.csc_matrix((0, matrix.shape[0]))
+        igl.min_quad_with_fixed_precompute(sp.csc_matrix(matrix, dtype=np.float64),
+                                           np.zeros(0, dtype=np.int64), empty, True, self._data)
+
+    def solve(self, rhs: torch.Tensor) -> torch.Tensor:
+        # min ½ xᵀ M x + xᵀ B is solved by M x = -B.
+        b = -rhs.detach().cpu().double().numpy()
+        out = igl.min_quad_with_fixed_solve(self._data, b, np.zeros((0, b.shape[1])), np.zeros((0, b.shape[1])))
+        return torch.as_tensor(out, dtype=self.dtype, device=self.device)
+
+
+def make_solver(matrix: sp.spmatrix, name: str = "cholespy", dtype: torch.dtype = torch.float32,
+                device: torch.device | str = "cpu"):
+    """Factorise the SPD ``matrix`` with the named solver."""
+    device = torch.device(device)
+    classes = {"cholespy": CholespySolver, "scipy-lu": ScipyLUSolver, "igl": IglSolver}
+    if name not in classes:
+        raise ValueError(f"unknown solver {name!r}; choose one of {', '.join(SOLVERS)}")
+    return classes[name](matrix, dtype, device)
