@@ -27,12 +27,13 @@ def _fail(message: str) -> None:
     raise SystemExit(2)
 
 
-def main() -> None:
-    """Run the CLI; user errors print one line on stderr and exit with code 2."""
+def main(argv: list[str] | None = None) -> None:
+    """Run the CLI on ``argv`` (default: the process's arguments); user errors print one line on
+    stderr and exit with code 2."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # library warnings are printed by the commands themselves
         try:
-            code = app(standalone_mode=False)
+            code = app(args=argv, standalone_mode=False, prog_name="statfit")
         except StatfitError as exc:
             _fail(str(exc))
         except click.exceptions.NoArgsIsHelpError:

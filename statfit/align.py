@@ -1,10 +1,12 @@
-"""Rigid and similarity pre-alignment of a template to a point set (trimmed ICP + Umeyama)."""
+"""Rigid and similarity pre-alignment of a template to a point set (trimmed point-to-plane ICP)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+import trimesh
+from scipy.spatial.transform import Rotation
 
 from statfit.closest import ClosestPointQuery
 
@@ -42,24 +44,43 @@ def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool) -> Similar
     return Similarity(scale, rotation, mu_t - scale * rotation @ mu_s)
 
 
+def compose(outer: Similarity, inner: Similarity) -> Similarity:
+    """The transform x ↦ outer(inner(x))."""
+    return Similarity(outer.scale * inner.scale, outer.rotation @ inner.rotation,
+                      outer.scale * outer.rotation @ inner.translation + outer.translation)
+
+
+def _plane_step(surface: np.ndarray, normals: np.ndarray, targets: np.ndarray, with_scale: bool) -> Similarity:
+    """Linearised point-to-plane update D (rotation vector, translation, log-scale) that moves
+    ``surface`` points towards ``targets`` along ``normals``; about the points' centroid."""
+    center = surface.mean(axis=0)
+    q, p = surface - center, targets - center
+    columns = [np.cross(q, normals), normals] + ([(normals * q).sum(axis=1, keepdims=True)] if with_scale else [])
+    solution, *_ = np.linalg.lstsq(np.hstack(columns), ((p - q) * normals).sum(axis=1), rcond=None)
+    rotation = Rotation.from_rotvec(solution[:3]).as_matrix()
+    scale = float(np.exp(solution[6])) if with_scale else 1.0
+    return Similarity(scale, rotation, center + solution[3:6] - scale * rotation @ center)
+
+
 def icp(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, with_scale: bool,
-        iterations: int = 40, trim: float = 0.2, start: Similarity | None = None) -> Similarity:
+        iterations: int = 60, trim: float = 0.2, start: Similarity | None = None) -> Similarity:
     """Transform mapping the mesh (``vertices``, ``faces``) onto ``points`` by trimmed
-    point-to-surface ICP: each round attaches the points to the transformed mesh's closest
-    surface points, drops the ``trim`` fraction farthest, and solves Umeyama."""
+    point-to-plane ICP: each round attaches the points, mapped into the mesh's frame, to their
+    closest surface points, drops the ``trim`` fraction farthest, and solves a linearised update."""
     query = ClosestPointQuery(faces, len(vertices))
     mesh = torch.as_tensor(vertices, dtype=torch.float64)
-    target = torch.as_tensor(points, dtype=torch.float64)
+    face_normals = trimesh.Trimesh(vertices, faces, process=False).face_normals
     transform = start or Similarity()
+    tolerance = 1e-7 * float(np.ptp(vertices))
     for _ in range(iterations):
-        local = torch.as_tensor(transform.inverse_apply(points))
-        hit = query(mesh, local)
+        local = transform.inverse_apply(points)
+        hit = query(mesh, torch.as_tensor(local))
         surface = (mesh[query.faces[hit.triangle]] * hit.barycentric[..., None]).sum(dim=1).numpy()
-        keep = hit.distance.numpy() <= np.quantile(hit.distance.numpy(), 1.0 - trim)
-        updated = umeyama(surface[keep], target.numpy()[keep], with_scale)
-        moved = np.abs(updated.apply(vertices) - transform.apply(vertices)).max()
-        transform = updated
-        if moved < 1e-7 * np.ptp(vertices):
+        distance = hit.distance.numpy()
+        keep = distance <= np.quantile(distance, 1.0 - trim)
+        step = _plane_step(surface[keep], face_normals[hit.triangle.numpy()[keep]], local[keep], with_scale)
+        transform = compose(transform, step)
+        if np.abs(step.apply(vertices) - vertices).max() < tolerance:
             break
     return transform
 

@@ -22,7 +22,7 @@ def observed_vertices(vertices: np.ndarray, points: np.ndarray, radius: float | 
 
 def surface_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Distance of each of ``points`` (M, 3) to the surface (``vertices``, ``faces``), (M,)."""
-    query = ClosestPointQuery(faces, len(vertices), k=4)
+    query = ClosestPointQuery(faces, len(vertices), k=12)
     hit = query(torch.as_tensor(vertices, dtype=torch.float64), torch.as_tensor(points, dtype=torch.float64))
     return hit.distance.numpy()
 

@@ -1,0 +1,120 @@
+"""Closest points, the scan term's gradient, parametrisation pull-backs and pre-alignment."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from statfit.align import Similarity, icp, umeyama
+from statfit.closest import ClosestPointQuery, closest_on_triangles
+from statfit.objectives.scan import ScanObjective
+from statfit.parametrize import PCACoefficients, RegularizedVertices
+
+
+def test_closest_points_match_trimesh(embedded_model, rng):
+    mesh = trimesh.Trimesh(embedded_model.template, embedded_model.faces, process=False)
+    points = mesh.sample(2000, seed=5) + rng.normal(scale=0.01, size=(2000, 3))
+    _, expected, _ = trimesh.proximity.closest_point(mesh, points)
+    hit = ClosestPointQuery(embedded_model.faces, len(mesh.vertices), k=12)(
+        torch.as_tensor(mesh.vertices), torch.as_tensor(points))
+    np.testing.assert_allclose(hit.distance.numpy(), expected, atol=1e-9)
+    fast = ClosestPointQuery(embedded_model.faces, len(mesh.vertices), k=2)(
+        torch.as_tensor(mesh.vertices), torch.as_tensor(points))
+    assert np.mean(np.abs(fast.distance.numpy() - expected) < 1e-9) > 0.95  # the fit's cheaper candidate set
+    surface = (mesh.vertices[mesh.faces[hit.triangle.numpy()]] * hit.barycentric.numpy()[..., None]).sum(axis=1)
+    np.testing.assert_allclose(np.linalg.norm(surface - points, axis=1), expected, atol=1e-9)
+    assert (hit.barycentric.numpy() >= -1e-12).all()
+
+
+def test_closest_point_regions_of_one_triangle():
+    a, b, c = (torch.tensor(v, dtype=torch.float64) for v in ([0, 0, 0], [1, 0, 0], [0, 1, 0]))
+    points = torch.tensor([[0.2, 0.2, 1.0], [-1, -1, 0], [2, -1, 0], [0.5, -1, 0], [1, 1, 0]], dtype=torch.float64)
+    bary, sq = closest_on_triangles(points, a, b, c)
+    expected = torch.tensor([[0.6, 0.2, 0.2], [1, 0, 0], [0, 1, 0], [0.5, 0.5, 0], [0, 0.5, 0.5]], dtype=torch.float64)
+    torch.testing.assert_close(bary, expected)
+    torch.testing.assert_close(sq, torch.tensor([1.0, 2.0, 2.0, 1.0, 0.5], dtype=torch.float64))
+
+
+def test_scan_term_gradient_matches_central_differences(embedded_model, rng):
+    verts = torch.as_tensor(embedded_model.template)
+    mesh = trimesh.Trimesh(embedded_model.template, embedded_model.faces, process=False)
+    points = torch.as_tensor(mesh.sample(300, seed=2) + rng.normal(scale=0.003, size=(300, 3)))
+    objective = ScanObjective(points, ClosestPointQuery(embedded_model.faces, len(verts)), trim=0.0)
+    objective.prepare(verts, 0)
+    x = verts.clone().requires_grad_(True)
+    objective(x)["data"].backward()
+    touched = torch.nonzero(x.grad.abs().sum(dim=1)).ravel()[:20]
+    h = 1e-6
+    for v in touched.tolist():
+        for axis in range(3):
+            plus, minus = verts.clone(), verts.clone()
+            plus[v, axis] += h
+            minus[v, axis] -= h
+            numeric = (float(objective(plus)["data"]) - float(objective(minus)["data"])) / (2 * h)
+            assert x.grad[v, axis].item() == pytest.approx(numeric, rel=1e-5, abs=1e-9)
+
+
+def test_exact_point_to_surface_gradient_at_refresh(embedded_model, rng):
+    """At a refresh the held attachment gives the gradient of the true point-to-surface distance."""
+    verts = torch.as_tensor(embedded_model.template)
+    query = ClosestPointQuery(embedded_model.faces, len(verts), k=6)
+    mesh = trimesh.Trimesh(embedded_model.template, embedded_model.faces, process=False)
+    points = torch.as_tensor(mesh.sample(200, seed=4) + rng.normal(scale=0.004, size=(200, 3)))
+    objective = ScanObjective(points, query, trim=0.0)
+    objective.prepare(verts, 0)
+    x = verts.clone().requires_grad_(True)
+    objective(x)["data"].backward()
+    true_loss = lambda v: float(query(v, points).distance.square().mean())
+    direction = torch.as_tensor(rng.standard_normal(verts.shape)) * (x.grad.abs().sum(1, keepdim=True) > 0)
+    h = 1e-7
+    numeric = (true_loss(verts + h * direction) - true_loss(verts - h * direction)) / (2 * h)
+    assert float((x.grad * direction).sum()) == pytest.approx(numeric, rel=1e-3)
+
+
+def test_pull_backs_match_autograd(embedded_model, rng):
+    mean = torch.as_tensor(embedded_model.template)
+    basis_t = torch.as_tensor(embedded_model.basis.T)
+    weights = torch.as_tensor(rng.standard_normal(mean.shape))
+    loss = lambda x: (weights * x).sum() + x.square().sum()
+
+    pca = PCACoefficients(mean, basis_t * 0.01, torch.as_tensor(rng.standard_normal(basis_t.shape[0])))
+    x = pca.vertices().requires_grad_(True)
+    loss(x).backward()
+    pca.pull_gradient(x.grad, x)
+    c = pca.coeffs.detach().clone().requires_grad_(True)
+    loss(mean + (basis_t.t() * 0.01 @ c).view_as(mean)).backward()
+    torch.testing.assert_close(pca.coeffs.grad, c.grad)
+
+    start = mean + 0.01 * torch.as_tensor(rng.standard_normal(mean.shape))
+    reg = RegularizedVertices(start, mean, basis_t, beta=10.0)
+    x = reg.vertices().clone().requires_grad_(True)
+    loss(x).backward()
+    prior = reg.pull_gradient(x.grad, x)["prior"]
+    y = start.clone().requires_grad_(True)
+    off = (y - mean).reshape(-1)
+    outside = off - basis_t.t() @ (basis_t @ off)
+    total = loss(y) + 10.0 / len(mean) * outside.square().sum()
+    total.backward()
+    torch.testing.assert_close(reg.x.grad, y.grad)
+    assert prior == pytest.approx(float(10.0 / len(mean) * outside.detach().square().sum()))
+
+
+@pytest.mark.parametrize("with_scale", [False, True])
+def test_icp_recovers_a_known_pose(embedded_model, rng, with_scale):
+    rotation = Rotation.from_euler("xyz", [8, -15, 5], degrees=True).as_matrix()
+    truth = Similarity(1.7 if with_scale else 1.0, rotation, np.array([0.02, -0.01, 0.03]))
+    mesh = trimesh.Trimesh(embedded_model.template, embedded_model.faces, process=False)
+    points = truth.apply(mesh.sample(3000, seed=9))
+    found = icp(embedded_model.template, embedded_model.faces, points, with_scale,
+                start=Similarity(1.6 if with_scale else 1.0, np.eye(3), np.zeros(3)))
+    moved = np.abs(found.apply(embedded_model.template) - truth.apply(embedded_model.template)).max()
+    assert moved < 1e-3 * truth.scale
+
+
+def test_umeyama_exact(rng):
+    src = rng.standard_normal((50, 3))
+    truth = Similarity(2.5, Rotation.random(random_state=3).as_matrix(), rng.standard_normal(3))
+    got = umeyama(src, truth.apply(src), with_scale=True)
+    np.testing.assert_allclose(got.apply(src), truth.apply(src), atol=1e-10)

@@ -1,0 +1,42 @@
+"""UniformAdam against a hand-computed step and against largesteps' AdamUniform."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from statfit.optim import UniformAdam
+
+
+def test_first_two_steps_by_hand():
+    p = torch.tensor([1.0, 2.0, -1.0], dtype=torch.float64, requires_grad=True)
+    opt = UniformAdam([p], lr=0.1, betas=(0.9, 0.999), eps=0.0)
+    g1 = torch.tensor([0.5, -2.0, 1.0], dtype=torch.float64)
+    p.grad = g1.clone()
+    opt.step()
+    # t=1: m̂ = g, v̂ = g², step = lr · g / max|g| = 0.1 · g / 2
+    expected = torch.tensor([1.0, 2.0, -1.0], dtype=torch.float64) - 0.1 * g1 / 2.0
+    torch.testing.assert_close(p.detach(), expected)
+    g2 = torch.tensor([1.0, 1.0, -3.0], dtype=torch.float64)
+    p.grad = g2.clone()
+    opt.step()
+    m = 0.9 * 0.1 * g1 + 0.1 * g2
+    v = 0.999 * 0.001 * g1**2 + 0.001 * g2**2
+    m_hat, v_hat = m / (1 - 0.9**2), v / (1 - 0.999**2)
+    expected = expected - 0.1 * m_hat / math.sqrt(float(v_hat.max()))
+    torch.testing.assert_close(p.detach(), expected)
+
+
+def test_matches_largesteps_adam_uniform():
+    largesteps = pytest.importorskip("largesteps.optimize")
+    torch.manual_seed(0)
+    a = torch.randn(200, 3, dtype=torch.float64, requires_grad=True)
+    b = a.detach().clone().requires_grad_(True)
+    ours, theirs = UniformAdam([a], lr=0.01), largesteps.AdamUniform([b], lr=0.01)
+    for _ in range(50):
+        g = torch.randn(200, 3, dtype=torch.float64)
+        a.grad, b.grad = g.clone(), g.clone()
+        ours.step()
+        theirs.step()
+    torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
