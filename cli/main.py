@@ -4,7 +4,6 @@ from __future__ import annotations
 import sys
 import warnings
 
-import click
 import typer
 
 from statfit.errors import StatfitError
@@ -36,14 +35,13 @@ def main(argv: list[str] | None = None) -> None:
             code = app(args=argv, standalone_mode=False, prog_name="statfit")
         except StatfitError as exc:
             _fail(str(exc))
-        except click.exceptions.NoArgsIsHelpError:
-            raise SystemExit(0)
-        except click.UsageError as exc:
-            _fail(exc.format_message().replace("\n", " "))
-        except click.exceptions.Abort:
+        except typer.Abort:
             _fail("aborted")
-        except click.ClickException as exc:
-            _fail(exc.format_message())
+        except typer.TyperException as exc:  # typer's (vendored click) usage errors
+            if type(exc).__name__ == "NoArgsIsHelpError":  # bare `statfit` or `statfit model`: show help
+                print(exc.format_message())
+                raise SystemExit(0)
+            _fail(exc.format_message().replace("\n", " "))
         except KeyboardInterrupt:
             _fail("interrupted")
         except BrokenPipeError:

@@ -88,6 +88,8 @@ def _loop(param, optimizer, objective, iterations, on_record, record_every, time
         it = first_iteration + step
         with timer("filter"):
             x = param.vertices()
+        if not bool(torch.isfinite(x).all()):
+            raise DivergenceError(f"the fit diverged at iteration {it}: vertices are not finite (step size too large?)")
         with timer("correspondences"):
             objective.prepare(x, it)
         x.requires_grad_(True)
@@ -108,6 +110,7 @@ def _loop(param, optimizer, objective, iterations, on_record, record_every, time
             if on_record:
                 on_record(it, terms)
     final = param.vertices()
-    if not torch.isfinite(final).all():
-        raise DivergenceError(f"the fit diverged by iteration {first_iteration + iterations - 1}: vertices are not finite")
+    if not bool(torch.isfinite(final).all()):
+        raise DivergenceError(f"the fit diverged at iteration {first_iteration + iterations - 1}: "
+                              "vertices are not finite (step size too large?)")
     return FitResult(final, terms, iterations, time.perf_counter() - start)

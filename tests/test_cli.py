@@ -1,0 +1,189 @@
+"""The command line: jobs end to end on the embedded model, and bad input → one line, exit 2."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from statfit_cli.main import main
+
+FAST = ["--iterations", "60", "-q"]
+
+
+def run(argv: list[str], capsys) -> tuple[int, str, str]:
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    out, err = capsys.readouterr()
+    return exit_info.value.code, out, err
+
+
+@pytest.fixture(scope="module")
+def scan_files(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("scan")
+    with pytest.raises(SystemExit) as exit_info:
+        main(["synth", "scan", "--seed", "3", "--out", str(folder / "scan.ply"), "--gt", str(folder / "gt.ply")])
+    assert exit_info.value.code == 0
+    return folder / "scan.ply", folder / "gt.ply"
+
+
+def test_synth_register_eval(scan_files, tmp_path, capsys):
+    scan, gt = scan_files
+    fit, log = tmp_path / "fit.ply", tmp_path / "fit.jsonl"
+    code, out, _ = run(["register", str(scan), "--method", "statistical", "--out", str(fit), "--log", str(log),
+                        "--json", *FAST], capsys)
+    assert code == 0
+    summary = json.loads(out)
+    assert summary["iterations"] == 60 and summary["output"] == str(fit)
+    lines = [json.loads(line) for line in log.read_text().splitlines()]
+    assert [lines[0]["type"], lines[-1]["type"]] == ["header", "summary"]
+    assert {"iteration", "data", "elapsed"} <= set(lines[1]) and lines[0]["versions"]["torch"]
+    mesh = trimesh.load(fit, process=False)
+    template = trimesh.load(gt, process=False)
+    np.testing.assert_array_equal(mesh.faces, template.faces)
+    code, out, _ = run(["eval", str(fit), str(gt), "--scan", str(scan), "--json"], capsys)
+    report = json.loads(out)
+    assert code == 0 and report["observed"]["count"] + report["unobserved"]["count"] == len(mesh.vertices)
+
+
+def test_same_seed_same_mesh_and_obj_output(scan_files, tmp_path, capsys):
+    scan, _ = scan_files
+    for name in ("a.ply", "b.ply", "c.obj"):
+        assert run(["register", str(scan), "--out", str(tmp_path / name), *FAST], capsys)[0] == 0
+    assert (tmp_path / "a.ply").read_bytes() == (tmp_path / "b.ply").read_bytes()
+    a = trimesh.load(tmp_path / "a.ply", process=False)
+    c = trimesh.load(tmp_path / "c.obj", process=False, maintain_order=True)
+    np.testing.assert_allclose(a.vertices, c.vertices, atol=1e-6)
+    np.testing.assert_array_equal(a.faces, c.faces)
+
+
+def test_many_scans_into_a_folder(scan_files, tmp_path, capsys):
+    scan, _ = scan_files
+    other = tmp_path / "other.ply"
+    other.write_bytes(scan.read_bytes())
+    out_dir = tmp_path / "fits"
+    out_dir.mkdir()
+    assert run(["register", str(scan), str(other), "--out-dir", str(out_dir), *FAST], capsys)[0] == 0
+    assert sorted(p.name for p in out_dir.iterdir()) == ["other.jsonl", "other.ply", "scan.jsonl", "scan.ply"]
+
+
+def test_stdin_to_stdout(scan_files, tmp_path):
+    scan, _ = scan_files
+    result = subprocess.run([sys.executable, "-m", "statfit_cli.main", "register", "-", "--out", "-", *FAST],
+                            input=scan.read_bytes(), capture_output=True, check=True)
+    (tmp_path / "fit.ply").write_bytes(result.stdout)
+    assert len(trimesh.load(tmp_path / "fit.ply", process=False).vertices) > 1000
+
+
+def test_millimetres_and_metres_give_the_same_relative_error(scan_files, tmp_path, capsys):
+    """The embedded model is in metres; the same model and scan scaled to millimetres must fit the same."""
+    scan, gt = scan_files
+    with np.load(Path(__file__).resolve().parents[1] / "data_templates" / "default_head.npz") as data:
+        arrays = {k: data[k] for k in data.files}
+    np.savez(tmp_path / "m.npz", **{k: v for k, v in arrays.items() if k in ("v_template", "faces", "shapedirs")})
+    arrays["v_template"] = arrays["v_template"] * 1000
+    arrays["shapedirs"] = arrays["shapedirs"] * 1000
+    np.savez(tmp_path / "mm.npz", **{k: v for k, v in arrays.items() if k in ("v_template", "faces", "shapedirs")})
+    points = trimesh.load(scan).vertices
+    trimesh.PointCloud(points * 1000).export(tmp_path / "scan_mm.ply")
+    gt_mesh = trimesh.load(gt, process=False)
+    trimesh.Trimesh(gt_mesh.vertices * 1000, gt_mesh.faces, process=False).export(tmp_path / "gt_mm.ply")
+    errors = []
+    for model, points_file, truth in (("m.npz", scan, gt), ("mm.npz", tmp_path / "scan_mm.ply", tmp_path / "gt_mm.ply")):
+        fit = tmp_path / f"fit_{model}.ply"
+        assert run(["register", str(points_file), "--model", str(tmp_path / model), "--out", str(fit),
+                    "--method", "statistical", *FAST], capsys)[0] == 0
+        errors.append(json.loads(run(["eval", str(fit), str(truth), "--json"], capsys)[1])["all"]["mean_rel"])
+    assert errors[1] == pytest.approx(errors[0], rel=0.01)
+
+
+def corrupt(path: Path) -> Path:
+    path.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 100\nproperty float x\nend_header\n\x00\x01")
+    return path
+
+
+def nan_scan(path: Path) -> Path:
+    points = np.random.default_rng(0).normal(size=(100, 3)) * 0.05
+    points[5] = np.nan
+    path.write_text("ply\nformat ascii 1.0\nelement vertex 100\nproperty float x\nproperty float y\n"
+                    "property float z\nend_header\n" + "\n".join(" ".join(map(str, p)) for p in points) + "\n")
+    return path
+
+
+def empty_scan(path: Path) -> Path:
+    path.write_text("ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\n"
+                    "property float z\nend_header\n")
+    return path
+
+
+def far_units(scan: Path, path: Path) -> Path:
+    trimesh.PointCloud(trimesh.load(scan).vertices * 1000).export(path)
+    return path
+
+
+def bad_model(path: Path) -> Path:
+    np.savez(path, v_template=np.zeros((10, 3)), faces=np.array([[0, 1, 2]]))
+    return path
+
+
+BAD_INPUTS = {
+    "missing scan": lambda t, s: ["register", str(t / "nope.ply")],
+    "corrupt scan": lambda t, s: ["register", str(corrupt(t / "bad.ply"))],
+    "empty file": lambda t, s: ["register", str((t / "zero.ply").write_bytes(b"") and t / "zero.ply")],
+    "scan without points": lambda t, s: ["register", str(empty_scan(t / "empty.ply"))],
+    "NaN coordinates": lambda t, s: ["register", str(nan_scan(t / "nan.ply"))],
+    "unknown method": lambda t, s: ["register", str(s), "--method", "magic"],
+    "unknown alignment": lambda t, s: ["register", str(s), "--align", "sideways"],
+    "model missing keys": lambda t, s: ["register", str(s), "--model", str(bad_model(t / "m.npz"))],
+    "missing model": lambda t, s: ["register", str(s), "--model", str(t / "none.npz")],
+    "unwritable output": lambda t, s: ["register", str(s), "--out", "/proc/forbidden/fit.ply"],
+    "missing output folder": lambda t, s: ["register", str(s), "--out", str(t / "no" / "fit.ply")],
+    "unit mismatch": lambda t, s: ["register", str(far_units(s, t / "mm.ply"))],
+    "unknown option": lambda t, s: ["register", str(s), "--frobnicate"],
+    "eval of different topologies": lambda t, s: ["eval", str(s), str(s)],
+    "bad k": lambda t, s: ["register", str(s), "--k", "0"],
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_INPUTS))
+def test_bad_input_gives_one_line_and_exit_2(case, scan_files, tmp_path, capsys):
+    scan, _ = scan_files
+    before = scan.read_bytes()
+    code, out, err = run(BAD_INPUTS[case](tmp_path, scan) + ["-q"] * (case not in ("eval of different topologies",)),
+                         capsys)
+    assert code == 2, err
+    assert err.startswith("statfit: error: ") and err.count("\n") == 1, err
+    assert scan.read_bytes() == before
+    assert not [p for p in tmp_path.rglob("*") if p.suffix in (".tmp",) or p.name.startswith("fit")]
+
+
+def test_bad_input_from_a_real_process_has_no_traceback(tmp_path):
+    result = subprocess.run([sys.executable, "-m", "statfit_cli.main", "register", str(corrupt(tmp_path / "x.ply"))],
+                            capture_output=True, text=True)
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert result.stderr.count("\n") == 1
+
+
+def test_far_scan_warns_but_fits(scan_files, tmp_path, capsys):
+    scan, _ = scan_files
+    shifted = tmp_path / "shifted.ply"
+    trimesh.PointCloud(trimesh.load(scan).vertices + [0.1, 0.0, 0.0]).export(shifted)
+    code, _, err = run(["register", str(shifted), "--out", str(tmp_path / "f.ply"), *FAST], capsys)
+    assert code == 0 and "statfit: warning: the scan is far from the model" in err
+
+
+def test_divergence_is_reported_with_its_iteration(scan_files, tmp_path, capsys):
+    scan, _ = scan_files
+    code, _, err = run(["register", str(scan), "--method", "none", "--lr", "1e30", "--out",
+                        str(tmp_path / "fit.ply"), *FAST], capsys)
+    assert code == 2 and "diverged at iteration" in err
+    assert not (tmp_path / "fit.ply").exists()
+
+
+def test_help_teaches(capsys):
+    code, out, _ = run(["register", "--help"], capsys)
+    assert code == 0 and "statistical" in out and "--align" in out
