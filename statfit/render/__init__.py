@@ -1,0 +1,14 @@
+"""Differentiable triangle rasterisation in pure torch (CPU and CUDA) with silhouette gradients.
+
+``rasterize`` → ``Fragments`` (z-buffer ids, differentiable perspective-correct barycentrics),
+``interpolate`` vertex attributes, ``antialias`` (or ``silhouette_crossings(...).blend``) for
+gradients at silhouettes, ``render_normals`` for the whole chain (normal map and mask).
+"""
+from statfit.render.antialias import EdgeCrossings, MeshAdjacency, antialias, silhouette_crossings
+from statfit.render.camera import Camera
+from statfit.render.rasterize import Fragments, interpolate, interpolate_fragments, rasterize
+from statfit.render.shading import normal_image, render_normals, vertex_normals
+
+__all__ = ["Camera", "EdgeCrossings", "Fragments", "MeshAdjacency", "antialias", "interpolate",
+           "interpolate_fragments", "normal_image", "rasterize", "render_normals", "silhouette_crossings",
+           "vertex_normals"]
