@@ -47,4 +47,7 @@ def demo(
         table.add_row(method, *(f"{report[k]['mean'] * unit:.2f}" for k in ("all", "observed", "unobserved",
                                                                           "observed_surface")),
                       f"{result.seconds:.1f}")
-    Console().print(table)
+    console = Console()
+    console.print(table)
+    console.print("The target is a model sample, inside the model's span, so pca can reach it exactly; for targets "
+                  "with detail outside the model (ICT expressions) see docs/benchmarks.md.")
