@@ -187,3 +187,16 @@ def test_divergence_is_reported_with_its_iteration(scan_files, tmp_path, capsys)
 def test_help_teaches(capsys):
     code, out, _ = run(["register", "--help"], capsys)
     assert code == 0 and "statistical" in out and "--align" in out
+
+
+def test_similarity_alignment_takes_a_scan_in_other_units(scan_files, tmp_path, capsys):
+    scan, gt = scan_files
+    millimetres = far_units(scan, tmp_path / "scan_mm.ply")
+    code, out, _ = run(["register", str(millimetres), "--align", "similarity", "--out", str(tmp_path / "fit.ply"),
+                        "--json", *FAST], capsys)
+    assert code == 0
+    scale = np.linalg.norm(np.array(json.loads(out)["model_to_scan"])[:3, 0])
+    assert scale == pytest.approx(1000, rel=0.1)
+    fit = trimesh.load(tmp_path / "fit.ply", process=False).vertices
+    truth = trimesh.load(gt, process=False).vertices * 1000
+    assert np.linalg.norm(fit - truth, axis=1).mean() < 0.15 * np.sqrt(((truth - truth.mean(0)) ** 2).sum(1).mean())
