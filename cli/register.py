@@ -88,9 +88,8 @@ def register(
     targets = _targets(scans, out, out_dir, log)
     if json_out and any(target == "-" for _, target, _ in targets):
         raise StatfitError("--json and --out - both want standard output; choose one")
-    for path in (out_dir,) if out_dir else ():
-        if not path.is_dir():
-            raise StatfitError(f"output folder does not exist: {path}")
+    if out_dir is not None and not out_dir.is_dir():
+        raise StatfitError(f"output folder does not exist: {out_dir}")
     for _, target, log_path in targets:
         check_writable(target)
         if log_path is not None:

@@ -81,7 +81,8 @@ def run_fit(param: Parametrization, optimizer: torch.optim.Optimizer, objective:
             torch.set_flush_denormal(False)
 
 
-def _loop(param, optimizer, objective, iterations, on_record, record_every, timer, first_iteration) -> FitResult:
+def _loop(param: Parametrization, optimizer: torch.optim.Optimizer, objective: Objective, iterations: int,
+          on_record: Progress | None, record_every: int, timer: StageTimer, first_iteration: int) -> FitResult:
     start = time.perf_counter()
     terms: dict[str, float] = {}
     for step in range(iterations):

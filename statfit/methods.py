@@ -5,7 +5,7 @@ methods are one stage each; ``default`` is the pipeline chosen by the study in d
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -37,7 +37,8 @@ class Settings:
     betas: tuple[float, float] = (0.9, 0.999)
 
     def describe(self) -> dict[str, Any]:
-        return {k: v for k, v in self.__dict__.items()}
+        """The settings as a plain dict (for logs)."""
+        return asdict(self)
 
 
 # The paper's settings (Nicolet-style UniformAdam, lr 0.01; β 30 filter / 10 regulariser; λ 19).

@@ -5,15 +5,12 @@ default: see docs/benchmarks.md (``cholespy``, the solver largesteps uses, was f
 """
 from __future__ import annotations
 
-from typing import Literal
-
 import igl
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 
-SolverName = Literal["cholespy", "scipy-lu", "igl"]
 SOLVERS: tuple[str, ...] = ("cholespy", "scipy-lu", "igl")
 
 
