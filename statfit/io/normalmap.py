@@ -1,0 +1,138 @@
+"""Normal maps (OpenEXR) and cameras (JSON, or an EXR header) in and out.
+
+EXR channels R, G, B hold a unit normal per pixel and A the coverage mask (1 foreground, 0
+background); half or float. Without A, pixels with a zero-length normal are background. A camera
+may travel in the header as the standard ``worldToCamera`` attribute (4×4) plus a ``K`` (3×3).
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+import OpenEXR
+
+from statfit.errors import StatfitError
+from statfit.io.mesh import write_atomic
+from statfit.render.camera import Camera
+
+EXR_MAGIC = b"\x76\x2f\x31\x01"
+
+
+@dataclass(frozen=True)
+class NormalMap:
+    """normals (H, W, 3) float32, unit on the mask; mask (H, W) bool; camera from the header, if any."""
+
+    normals: np.ndarray
+    mask: np.ndarray
+    camera: Camera | None = None
+
+
+@contextmanager
+def _quiet_stderr() -> Iterator[None]:
+    """Silence the OpenEXR C library, which prints its own messages on failures."""
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+            yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def read_normal_map(path: str | Path) -> NormalMap:
+    """Read and validate a normal-map EXR."""
+    path = Path(path)
+    if not path.is_file():
+        raise StatfitError(f"normal map not found: {path}")
+    with open(path, "rb") as handle:
+        if handle.read(4) != EXR_MAGIC:
+            raise StatfitError(f"{path} is not an OpenEXR file")
+    try:
+        with _quiet_stderr(), OpenEXR.File(str(path), separate_channels=True) as exr:
+            header = dict(exr.header())
+            channels = {name: np.asarray(ch.pixels, dtype=np.float32) for name, ch in exr.channels().items()}
+    except Exception as exc:  # the bindings raise RuntimeError and friends for damaged files
+        raise StatfitError(f"cannot read {path}: damaged OpenEXR file ({exc})") from None
+    missing = [c for c in "RGB" if c not in channels]
+    if missing:
+        raise StatfitError(f"{path} has no {'/'.join(missing)} channel(s); it has {', '.join(sorted(channels)) or 'none'}")
+    normals = np.stack([channels[c] for c in "RGB"], axis=-1)
+    length = np.linalg.norm(normals, axis=-1)
+    mask = channels["A"] > 0.5 if "A" in channels else length > 0
+    return NormalMap(*_validated(normals, length, mask, path), camera=_header_camera(header, normals.shape))
+
+
+def apply_mask(normal_map: NormalMap, mask: np.ndarray, source: str) -> NormalMap:
+    """The same normal map with ``mask`` (H, W) bool replacing its coverage."""
+    if mask.shape != normal_map.mask.shape:
+        raise StatfitError(f"{source} is {mask.shape[1]}×{mask.shape[0]} but the normal map is "
+                           f"{normal_map.mask.shape[1]}×{normal_map.mask.shape[0]}")
+    normals, mask = _validated(normal_map.normals, np.linalg.norm(normal_map.normals, axis=-1), mask, source)
+    return NormalMap(normals, mask, normal_map.camera)
+
+
+def _validated(normals: np.ndarray, length: np.ndarray, mask: np.ndarray, source) -> tuple[np.ndarray, np.ndarray]:
+    if not mask.any():
+        raise StatfitError(f"{source}: the mask has no foreground pixel")
+    if not np.isfinite(normals[mask]).all():
+        raise StatfitError(f"{source} has NaN or infinite normals on {int((~np.isfinite(normals[mask])).any(-1).sum())} "
+                           "foreground pixels")
+    if (length[mask] < 1e-6).any():
+        raise StatfitError(f"{source} has zero-length normals on {int((length[mask] < 1e-6).sum())} foreground pixels")
+    unit = np.where(mask[..., None], normals / np.maximum(length, 1e-12)[..., None], 0.0)
+    return unit.astype(np.float32), mask
+
+
+def _header_camera(header: dict, shape: tuple[int, ...]) -> Camera | None:
+    if "worldToCamera" not in header or "K" not in header:
+        return None
+    return Camera(shape[1], shape[0], np.asarray(header["K"]), np.asarray(header["worldToCamera"]))
+
+
+def check_camera_fits(camera: Camera, normal_map: NormalMap, source: str) -> None:
+    """Refuse a camera whose image size differs from the normal map's."""
+    height, width = normal_map.mask.shape
+    if (camera.width, camera.height) != (width, height):
+        raise StatfitError(f"{source} is for a {camera.width}×{camera.height} image but the normal map is "
+                           f"{width}×{height}")
+
+
+def write_normal_map(path: str | Path, normals: np.ndarray, mask: np.ndarray, camera: Camera | None = None) -> None:
+    """Write normals (H, W, 3) and mask (H, W) as a float EXR (R, G, B, A), atomically; with
+    ``camera``, its K and world_to_camera go into the header."""
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    if camera is not None:
+        header["K"] = camera.K.numpy().astype(np.float32)
+        header["worldToCamera"] = camera.world_to_camera.numpy().astype(np.float32)
+    channels = {c: np.ascontiguousarray(normals[..., i], dtype=np.float32) for i, c in enumerate("RGB")}
+    channels["A"] = mask.astype(np.float32)
+    folder = Path(path).parent
+    with tempfile.TemporaryDirectory(dir=folder if folder.is_dir() else None) as scratch:
+        staging = Path(scratch) / "map.exr"
+        with OpenEXR.File(header, channels) as exr:
+            exr.write(str(staging))
+        write_atomic(path, staging.read_bytes())
+
+
+def read_camera(path: str | Path) -> Camera:
+    """A camera from its JSON description (docs/formats.md)."""
+    path = Path(path)
+    if not path.is_file():
+        raise StatfitError(f"camera file not found: {path}")
+    try:
+        data = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise StatfitError(f"{path} is not valid JSON: {exc}") from None
+    return Camera.from_dict(data)
+
+
+def write_camera(path: str | Path, camera: Camera) -> None:
+    """Write ``camera`` as JSON, atomically."""
+    write_atomic(path, (json.dumps(camera.to_dict(), indent=1) + "\n").encode())
