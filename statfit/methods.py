@@ -63,11 +63,12 @@ TUNED: dict[str, Settings] = {
     "none": Settings("none", 1000, 0.003),
 }
 
-# Coarse to fine: a stiff filter (β = 1000, gains ∝ std) finds the shape in the model's span, then a
-# softer one (β = 30, gains ∝ sqrt(std)) lets off-model detail such as expressions in.
+# Two stages of the statistical filter with β = 1000: gains ∝ std (γ = 1) find the shape in the
+# model's span, then a smaller step with gains ∝ sqrt(std) (γ = 0.5) lets low-variance modes and
+# off-model detail (expressions) in. Chosen by the study and its follow-up (docs/benchmarks.md).
 PIPELINES: dict[str, tuple[Settings, ...]] = {
-    "default": (Settings("statistical", 2667, 0.03, beta=1000.0, mode_gain=1.0),
-                Settings("statistical", 1333, 0.01, beta=30.0, mode_gain=0.5)),
+    "default": (Settings("statistical", 4000, 0.03, beta=1000.0, mode_gain=1.0),
+                Settings("statistical", 1333, 0.01, beta=1000.0, mode_gain=0.5)),
 }
 
 
