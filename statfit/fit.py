@@ -1,6 +1,7 @@
 """The one fitting loop shared by every job and method."""
 from __future__ import annotations
 
+import math
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
@@ -106,7 +107,7 @@ def _loop(param: Parametrization, optimizer: torch.optim.Optimizer, objective: O
         if step % record_every == 0 or step == iterations - 1:
             terms = {k: float(v.detach()) for k, v in losses.items()} | prior
             terms["total"] = sum(terms.values())
-            if not torch.isfinite(torch.tensor(terms["total"])):
+            if not math.isfinite(terms["total"]):
                 raise DivergenceError(f"the fit diverged at iteration {it}: the loss is {terms['total']}")
             if on_record:
                 on_record(it, terms)

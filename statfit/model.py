@@ -100,6 +100,8 @@ def load_model(path: str | Path, k: int | None = None) -> StatModel:
     path = Path(path)
     if not path.is_file():
         raise StatfitError(f"model file not found: {path}")
+    if not zipfile.is_zipfile(path):
+        raise StatfitError(f"cannot read model {path}: not an npz archive")
     try:
         with np.load(path, allow_pickle=False) as data:
             arrays = {key: data[key] for key in data.files}

@@ -68,7 +68,9 @@ def resolve_device(device: str) -> torch.device:
 
 def fit_space(model: StatModel, frame: Frame, device: torch.device, dtype: torch.dtype) -> FitSpace:
     """The model's mean, basis and std-devs in the fit frame, as tensors on ``device``."""
-    as_tensor = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=dtype, device=device)
+    def as_tensor(array: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor(np.ascontiguousarray(array), dtype=dtype, device=device)
+
     return FitSpace(as_tensor(frame.to_unit(model.template)), as_tensor(model.basis.T),
                     as_tensor(model.std / frame.scale), model.faces)
 
@@ -120,7 +122,7 @@ def register(model: StatModel, points: np.ndarray, method: str = "default", *, p
     x, done, loss = space.mean.clone(), 0, {}
     for settings in stages:
         param, optimizer = build(settings, space, x)
-        objective.attachment = None
+        objective.reset()  # a new stage starts from fresh correspondences
         result = run_fit(param, optimizer, objective, settings.iterations, on_record=on_record,
                          timer=timer, first_iteration=done)
         x, done, loss = result.vertices, done + settings.iterations, result.loss

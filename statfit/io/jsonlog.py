@@ -39,14 +39,10 @@ class JsonLinesLog:
 
 
 def _plain(value: Any) -> Any:
-    if isinstance(value, (np.generic,)):
+    if isinstance(value, np.generic):
         return value.item()
-    if isinstance(value, (np.ndarray,)):
+    if isinstance(value, np.ndarray):
         return value.tolist()
-    if isinstance(value, Path):
-        return str(value)
-    if isinstance(value, tuple):
-        return list(value)
     return str(value)
 
 

@@ -38,6 +38,10 @@ class ScanObjective:
             self._keep = torch.ones_like(dist, dtype=torch.bool)
         return self.attachment
 
+    def reset(self) -> None:
+        """Drop the attachments, so the next ``prepare`` recomputes them."""
+        self.attachment = None
+
     def prepare(self, vertices: torch.Tensor, iteration: int) -> None:
         if self.attachment is None or iteration % self.refresh_every == 0:
             self.refresh(vertices)
