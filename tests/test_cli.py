@@ -146,6 +146,14 @@ BAD_INPUTS = {
     "unknown option": lambda t, s: ["register", str(s), "--frobnicate"],
     "eval of different topologies": lambda t, s: ["eval", str(s), str(s)],
     "bad k": lambda t, s: ["register", str(s), "--k", "0"],
+    "eval of a missing fit": lambda t, s: ["eval", str(t / "nope.ply"), str(s)],
+    "eval of a corrupt fit": lambda t, s: ["eval", str(corrupt(t / "bad.ply")), str(s)],
+    "eval of an empty fit": lambda t, s: ["eval", str((t / "zero.ply").write_bytes(b"") and t / "zero.ply"), str(s)],
+    "model info of a missing model": lambda t, s: ["model", "info", str(t / "none.npz")],
+    "model info of a corrupt model": lambda t, s: ["model", "info", str(corrupt(t / "m.npz"))],
+    "synth with a missing delta file": lambda t, s: ["synth", "scan", "--out", str(t / "fit.ply"), "--delta",
+                                                     str(t / "none.npz"), "--delta-name", "jawOpen"],
+    "synth into a missing folder": lambda t, s: ["synth", "scan", "--out", str(t / "no" / "fit.ply")],
 }
 
 
@@ -153,8 +161,8 @@ BAD_INPUTS = {
 def test_bad_input_gives_one_line_and_exit_2(case, scan_files, tmp_path, capsys):
     scan, _ = scan_files
     before = scan.read_bytes()
-    code, out, err = run(BAD_INPUTS[case](tmp_path, scan) + ["-q"] * (case not in ("eval of different topologies",)),
-                         capsys)
+    argv = BAD_INPUTS[case](tmp_path, scan)
+    code, out, err = run(argv + ["-q"] * (argv[0] == "register"), capsys)
     assert code == 2, err
     assert err.startswith("statfit: error: ") and err.count("\n") == 1, err
     assert scan.read_bytes() == before
