@@ -41,6 +41,10 @@ class Settings:
         return asdict(self)
 
 
+JOBS = ("register", "render")
+# The paper's iteration counts per job: 500 for scan registration, 3000 for inverse rendering.
+PAPER_ITERATIONS = {"register": 500, "render": 3000}
+
 # The paper's settings (Nicolet-style UniformAdam, lr 0.01; β 30 filter / 10 regulariser; λ 19).
 PAPER: dict[str, Settings] = {
     "statistical": Settings("statistical", 500, 0.01, beta=30.0),
@@ -72,6 +76,22 @@ PIPELINES: dict[str, tuple[Settings, ...]] = {
 }
 
 
+# Inverse rendering (one normal map): each method's best settings in the rendering study
+# (docs/benchmarks.md), and the default pipeline chosen by it.
+RENDER_TUNED: dict[str, Settings] = {
+    "statistical": Settings("statistical", 3000, 0.01, beta=1000.0, mode_gain=1.0),
+    "laplacian": Settings("laplacian", 3000, 0.01, lam=19.0),
+    "hybrid": Settings("hybrid", 3000, 0.01, beta=30.0, lam=19.0),
+    "regularized": Settings("regularized", 3000, 0.01, beta=10.0),
+    "pca": Settings("pca", 3000, 0.05),
+    "none": Settings("none", 3000, 0.001),
+}
+RENDER_PIPELINES: dict[str, tuple[Settings, ...]] = {
+    "default": (Settings("statistical", 2000, 0.01, beta=1000.0, mode_gain=1.0),
+                Settings("statistical", 1000, 0.005, beta=1000.0, mode_gain=0.5)),
+}
+
+
 @dataclass(frozen=True)
 class FitSpace:
     """The model in the fit frame, as tensors: mean (N, 3), basis_t = Uᵀ (K, 3N), std (K,)."""
@@ -82,17 +102,23 @@ class FitSpace:
     faces: np.ndarray
 
 
-def resolve(method: str, preset: str = "tuned", **overrides: Any) -> tuple[Settings, ...]:
-    """The stages for ``method`` under ``preset`` ('tuned' or 'paper'), with ``overrides``
-    (non-None values) applied to every stage."""
+def resolve(method: str, preset: str = "tuned", job: str = "register", **overrides: Any) -> tuple[Settings, ...]:
+    """The stages for ``method`` under ``preset`` ('tuned' or 'paper') for ``job`` ('register'
+    or 'render'), with ``overrides`` (non-None values) applied to every stage."""
     if preset not in ("tuned", "paper"):
         raise StatfitError(f"unknown preset {preset!r}; choose 'tuned' or 'paper'")
-    if method in PIPELINES:
+    if job not in JOBS:
+        raise StatfitError(f"unknown job {job!r}; choose one of {', '.join(JOBS)}")
+    pipelines = PIPELINES if job == "register" else RENDER_PIPELINES
+    if method in pipelines:
         if preset == "paper":
             raise StatfitError(f"the {method!r} pipeline is ours, not the paper's; use --method statistical --preset paper")
-        stages = PIPELINES[method]
+        stages = pipelines[method]
     elif method in METHODS:
-        stages = ((PAPER if preset == "paper" else TUNED)[method],)
+        if preset == "paper":
+            stages = (replace(PAPER[method], iterations=PAPER_ITERATIONS[job]),)
+        else:
+            stages = ((TUNED if job == "register" else RENDER_TUNED)[method],)
     else:
         raise StatfitError(f"unknown method {method!r}; choose one of {', '.join((*PIPELINES, *METHODS))}")
     changes = {k: v for k, v in overrides.items() if v is not None}

@@ -1,12 +1,15 @@
-"""Synthetic test data: a model sample (plus an optional off-model delta) seen from one side."""
+"""Synthetic test data: a model sample (plus an optional off-model delta) seen from one side, as a
+partial scan or as a normal map."""
 from __future__ import annotations
 
 import numpy as np
+import torch
 import trimesh
 
 from statfit.errors import StatfitError
 from statfit.frame import Frame
 from statfit.model import StatModel
+from statfit.render import Camera, normal_image, rasterize
 
 
 def sample_target(model: StatModel, rng: np.random.Generator, sigma: float = 1.0,
@@ -68,3 +71,28 @@ def scan_from_view(vertices: np.ndarray, faces: np.ndarray, rng: np.random.Gener
         box_lo, box_hi = vertices.min(axis=0), vertices.max(axis=0)
         points[rng.choice(num_points, count, replace=False)] = rng.uniform(box_lo, box_hi, size=(count, 3))
     return points
+
+
+def camera_for_view(vertices: np.ndarray, yaw_deg: float = 20.0, pitch_deg: float = 0.0, size: int = 512,
+                    fov_deg: float = 30.0, fill: float = 0.85) -> Camera:
+    """A square pinhole camera looking at the shape's centroid from ``view_direction(yaw, pitch)``,
+    +y up, far enough that the shape's bounding sphere spans ``fill`` of the image height."""
+    if size < 8:
+        raise StatfitError(f"image size must be at least 8 pixels, got {size}")
+    if not 0.0 < fill <= 1.0:
+        raise StatfitError(f"fill must lie in (0, 1], got {fill}")
+    centre = vertices.mean(axis=0)
+    radius = float(np.linalg.norm(vertices - centre, axis=1).max())
+    distance = radius / np.sin(np.radians(fov_deg) / 2 * fill)
+    eye = centre + distance * view_direction(yaw_deg, pitch_deg)
+    return Camera.look_at(eye, centre, [0.0, 1.0, 0.0], fov_deg, size, size)
+
+
+def render_target(vertices: np.ndarray, faces: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """World-space unit normals (H, W, 3) and the coverage mask (H, W) bool of a mesh, as a
+    normal map without antialiasing (every foreground pixel holds one surface's normal)."""
+    points = torch.as_tensor(vertices, dtype=torch.float64)
+    face_ids = torch.as_tensor(faces, dtype=torch.long)
+    fragments = rasterize(points, face_ids, camera)
+    normals = normal_image(points, face_ids, fragments, camera, space="world")
+    return normals.numpy().astype(np.float32), (fragments.triangle >= 0).numpy()

@@ -1,0 +1,188 @@
+"""Inverse rendering: fit a model's template to one normal map. The library entry point of
+``statfit render``.
+
+The fit runs in the model's unit frame (:class:`statfit.frame.Frame`); the camera is moved into
+that frame, and a pose found by the initial alignment is folded into the camera, so the filters
+act on the model in its own orientation. Target normals are compared in camera space.
+
+Alignment (rigid / similarity): Adam on the pose jointly with the model's coefficients (weak
+prior), from the identity or, where the silhouettes overlap poorly, from a move that matches
+their centroids. The translation along the viewing axis stays fixed: from one view it trades off
+against the shape's size, and left free it drifted by most of a head radius on test cases; use
+similarity to estimate a scale.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Literal
+
+import numpy as np
+import torch
+
+from statfit.align import Similarity
+from statfit.errors import StatfitError
+from statfit.fit import StageTimer, run_fit
+from statfit.frame import Frame
+from statfit.io.normalmap import NormalMap
+from statfit.methods import Settings, build, resolve
+from statfit.model import StatModel
+from statfit.objectives.normals import SILHOUETTE_WEIGHT, NormalMapObjective
+from statfit.pose import fit_pose
+from statfit.register import UNIT_MISMATCH_FACTOR, fit_space, resolve_device
+from statfit.render import Camera, rasterize
+
+ALIGNMENTS = ("none", "rigid", "similarity")
+NORMAL_SPACES = ("world", "camera")
+NORMAL_CONVENTIONS = ("opencv", "opengl")
+POSE_ITERATIONS = 200
+POSE_LR = 0.01
+GOOD_OVERLAP = 0.7
+
+
+@dataclass
+class Reconstruction:
+    """Fitted vertices (N, 3) in the camera's world frame and units, and how they were obtained.
+
+    pose: the model → world transform found by the alignment (identity with align='none')."""
+
+    vertices: np.ndarray
+    pose: Similarity
+    stages: tuple[Settings, ...]
+    loss: dict[str, float]
+    seconds: float
+    stage_seconds: dict[str, float] = field(default_factory=dict)
+
+
+def camera_space_normals(normal_map: NormalMap, camera: Camera, space: str = "world",
+                         convention: str = "opencv") -> np.ndarray:
+    """The map's normals (H, W, 3) in camera space with OpenCV axes (x right, y down, z forward).
+
+    space 'world': normals in the camera's world frame; 'camera' with convention 'opencv', or
+    'opengl' (x right, y up, z towards the viewer)."""
+    if space not in NORMAL_SPACES:
+        raise StatfitError(f"unknown normal space {space!r}; choose world or camera")
+    if convention not in NORMAL_CONVENTIONS:
+        raise StatfitError(f"unknown normal convention {convention!r}; choose opencv or opengl")
+    normals = normal_map.normals.astype(np.float64)
+    if space == "world":
+        normals = normals @ camera.rotation.numpy().T
+    elif convention == "opengl":
+        normals = normals * np.array([1.0, -1.0, -1.0])
+    return np.where(normal_map.mask[..., None], normals, 0.0)
+
+
+def camera_in_frame(camera: Camera, frame: Frame, pose: Similarity = Similarity()) -> Camera:
+    """The camera that sees unit-frame points x as ``camera`` sees world points
+    ``frame.from_unit(pose.apply(x))`` (same image; camera coordinates divided by the scales)."""
+    R, t = camera.rotation.numpy(), camera.world_to_camera[:3, 3].numpy()
+    scale = frame.scale * pose.scale
+    matrix = np.eye(4)
+    matrix[:3, :3] = R @ pose.rotation
+    matrix[:3, 3] = (R @ (frame.scale * pose.translation + frame.center) + t) / scale
+    return Camera(camera.width, camera.height, camera.K, matrix)
+
+
+def check_framing(template: np.ndarray, camera: Camera, mask: np.ndarray, align: str) -> None:
+    """Refuse a model that lies behind the camera, or whose image is far larger or smaller than
+    the target's silhouette (different units?) unless the alignment estimates a scale."""
+    pixels, depth = camera.project(torch.as_tensor(template, dtype=torch.float64))
+    if float(depth.median()) <= 0:
+        raise StatfitError("the model lies behind the camera: are the model and the camera in the same frame "
+                           "and units?")
+    pixels = pixels[depth > 0].numpy()
+    rows, cols = np.nonzero(mask)
+    model_extent = np.linalg.norm(np.ptp(pixels, axis=0))
+    target_extent = np.linalg.norm([np.ptp(cols) + 1, np.ptp(rows) + 1])
+    ratio = model_extent / target_extent
+    if align != "similarity" and not 1 / UNIT_MISMATCH_FACTOR < ratio < UNIT_MISMATCH_FACTOR:
+        raise StatfitError(f"the model's image is {ratio:.3g} times the size of the normal map's silhouette: are the "
+                           "model and the camera in different units? Rescale one, or use --align similarity")
+
+
+def _centring_guess(template: torch.Tensor, faces: torch.Tensor, camera: Camera, mask: np.ndarray,
+                    with_scale: bool) -> Similarity:
+    """The starting point of the pose search: the identity where the template's silhouette
+    overlaps the target's well (IoU ≥ ``GOOD_OVERLAP``), else a move parallel to the image plane
+    (and, ``with_scale``, a scale about the centroid) that puts the template's silhouette
+    centroid on the target's (and matches their areas)."""
+    with torch.no_grad():
+        covered = (rasterize(template, faces, camera).triangle >= 0).cpu().numpy()
+    if not covered.any():
+        raise StatfitError("the model is not in the camera's view: are the model and the camera in the same frame?")
+    if (covered & mask).sum() >= GOOD_OVERLAP * (covered | mask).sum():
+        return Similarity()
+    scale = float(np.sqrt(mask.sum() / covered.sum())) if with_scale else 1.0
+    depth = float(camera.project(template)[1].mean())
+    K_inv = np.linalg.inv(camera.K.numpy())
+    centroids = [K_inv @ [np.nonzero(m)[1].mean() + 0.5, np.nonzero(m)[0].mean() + 0.5, 1.0] for m in (covered, mask)]
+    shift = (centroids[1] - centroids[0]) * depth
+    shift[2] = 0.0
+    centre = template.detach().double().mean(dim=0).cpu().numpy()
+    return Similarity(scale, np.eye(3), (1 - scale) * centre + camera.rotation.numpy().T @ shift)
+
+
+def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method: str = "default", *,
+                preset: str = "tuned", normal_space: str = "world", normal_convention: str = "opencv",
+                align: str = "rigid", init: np.ndarray | None = None, device: str = "cpu",
+                dtype: torch.dtype = torch.float32, silhouette_weight: float = SILHOUETTE_WEIGHT, seed: int = 0,
+                on_record: Callable[[int, dict[str, float]], None] | None = None,
+                timer: StageTimer | None = None, stages: tuple[Settings, ...] | None = None,
+                **overrides: Any) -> Reconstruction:
+    """Fit ``model`` to ``normal_map`` seen by ``camera`` with ``method``.
+
+    ``init`` (N, 3): start from these vertices (world frame) instead of the template.
+    ``overrides`` replace the method's settings (see :func:`statfit.methods.resolve`); ``stages``
+    replaces the method by an explicit pipeline.
+    """
+    if align not in ALIGNMENTS:
+        raise StatfitError(f"unknown alignment {align!r}; choose one of {', '.join(ALIGNMENTS)}")
+    stages = stages or resolve(method, preset, job="render", **overrides)
+    torch_device = resolve_device(device)
+    torch.manual_seed(seed)
+    started = time.perf_counter()
+    start_shape = model.template if init is None else _checked_init(init, model)
+    check_framing(start_shape, camera, normal_map.mask, align)
+    frame = Frame.of(model.template)
+    space = fit_space(model, frame, torch_device, dtype)
+    target = torch.as_tensor(camera_space_normals(normal_map, camera, normal_space, normal_convention),
+                             dtype=dtype, device=torch_device)
+    mask = torch.as_tensor(normal_map.mask, device=torch_device)
+    faces = torch.as_tensor(model.faces, dtype=torch.long, device=torch_device)
+    x0 = torch.as_tensor(frame.to_unit(start_shape), dtype=dtype, device=torch_device)
+
+    def objective_for(pose: Similarity) -> NormalMapObjective:
+        return NormalMapObjective(target, mask, camera_in_frame(camera, frame, pose), faces, silhouette_weight)
+
+    timer = timer or StageTimer(sync=torch_device.type == "cuda")
+    pose = Similarity()
+    if align != "none":
+        with timer("alignment"):
+            unit_camera = camera_in_frame(camera, frame)
+            guess = _centring_guess(x0, faces, unit_camera, normal_map.mask, align == "similarity")
+            # The model's coefficients move jointly with the pose (from the start shape), so that
+            # the pose does not absorb differences of shape; the fit then starts from that shape.
+            shape_basis = (space.basis_t * space.std[:, None]).view(len(space.std), -1, 3)
+            pose, x0 = fit_pose(x0, objective_for(Similarity()), with_scale=align == "similarity",
+                                iterations=POSE_ITERATIONS, lr=POSE_LR, start=guess,
+                                fixed_axis=unit_camera.rotation[2].to(dtype), shape_basis=shape_basis)
+    objective = objective_for(pose)
+    x, done, loss = x0, 0, {}
+    for settings in stages:
+        param, optimizer = build(settings, space, x)
+        result = run_fit(param, optimizer, objective, settings.iterations, on_record=on_record,
+                         timer=timer, first_iteration=done)
+        x, done, loss = result.vertices, done + settings.iterations, result.loss
+    vertices = frame.from_unit(pose.apply(x.detach().cpu().double().numpy()))
+    world_pose = Similarity(pose.scale, pose.rotation,
+                            frame.scale * pose.translation + frame.center - pose.scale * pose.rotation @ frame.center)
+    return Reconstruction(vertices, world_pose, stages, loss, time.perf_counter() - started, dict(timer.seconds))
+
+
+def _checked_init(init: np.ndarray, model: StatModel) -> np.ndarray:
+    init = np.asarray(init, dtype=np.float64)
+    if init.shape != model.template.shape:
+        raise StatfitError(f"the initial mesh has {init.shape[0]} vertices; the model has {model.num_vertices}")
+    if not np.isfinite(init).all():
+        raise StatfitError("the initial mesh has NaN or infinite coordinates")
+    return init
