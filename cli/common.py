@@ -11,6 +11,7 @@ import typer
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+from statfit.errors import StatfitError
 from statfit.model import StatModel, default_model_path, load_model
 
 stderr = Console(stderr=True)
@@ -18,6 +19,35 @@ stderr = Console(stderr=True)
 ModelOption = typer.Option(None, "--model", "-m", help="Model npz (v_template, faces, shapedirs). "
                            "Default: the embedded synthetic head.", show_default=False)
 KOption = typer.Option(None, "--k", help="Use only the first K modes of the model.", show_default=False)
+MethodOption = typer.Option("default", help="default (the measured best pipeline), statistical, hybrid, "
+                            "laplacian, pca, regularized or none.")
+PresetOption = typer.Option("tuned", help="tuned (our measured defaults) or paper (the paper's settings, exactly).")
+DeviceOption = typer.Option("cpu", help="auto, cpu or cuda.")
+SeedOption = typer.Option(0, help="Random seed; the same seed gives the same mesh.")
+LogOption = typer.Option(None, help="JSON-lines log: header, a record every 10 iterations, summary.",
+                         show_default=False)
+QuietOption = typer.Option(False, "--quiet", "-q", help="No progress bar.")
+JsonOption = typer.Option(False, "--json", help="Print each fit's summary as a JSON line on stdout.")
+IterationsOption = typer.Option(None, help="Iterations (all stages together). Default: the method's.",
+                                show_default=False)
+LrOption = typer.Option(None, help="Step size (fit frame: model centred, unit RMS radius).", show_default=False)
+BetaOption = typer.Option(None, help="β of the statistical/hybrid filter, or the regulariser's weight.",
+                          show_default=False)
+PowerOption = typer.Option(None, help="Exponent p on the statistical filter (same as β' = (1+β)^p − 1).",
+                           show_default=False)
+LamOption = typer.Option(None, help="λ of the Laplacian (laplacian, hybrid).", show_default=False)
+LaplacianOption = typer.Option(None, help="uniform or cotangent.", show_default=False)
+ModeGainOption = typer.Option(None, help="γ: filter gain on mode j = (std_j/std_1)^γ; 0 is the paper's filter.",
+                              show_default=False)
+
+
+def setting_overrides(iterations: int | None, lr: float | None, beta: float | None, power: float | None,
+                      lam: float | None, laplacian: str | None, mode_gain: float | None) -> dict:
+    """The method-setting options as overrides for :func:`statfit.methods.resolve` (validated)."""
+    if laplacian is not None and laplacian not in ("uniform", "cotangent"):
+        raise StatfitError(f"unknown Laplacian {laplacian!r}; choose uniform or cotangent")
+    return dict(iterations=iterations, lr=lr, beta=beta, power=power, lam=lam, laplacian=laplacian,
+                mode_gain=mode_gain)
 
 
 def open_model(path: Path | None, k: int | None = None) -> StatModel:

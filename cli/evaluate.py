@@ -4,13 +4,15 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import typer
 from rich.console import Console
 from rich.table import Table
 
 from statfit.errors import StatfitError
 from statfit.io.mesh import read_mesh, read_points
-from statfit.metrics import evaluate as evaluate_fit, observed_vertices
+from statfit.io.normalmap import check_camera_fits, read_camera, read_normal_map
+from statfit.metrics import evaluate as evaluate_fit, observed_vertices, visible_vertices
 
 
 def evaluate(
@@ -19,18 +21,31 @@ def evaluate(
     scan: Path = typer.Option(None, help="The scan that was fitted: splits errors into observed vertices "
                               "(within 3 median point spacings of a scan point) and unobserved ones.",
                               show_default=False),
+    normals: Path = typer.Option(None, help="The normal map that was fitted: observed vertices are those of the "
+                                 "ground truth's triangles seen on its mask (needs a camera).", show_default=False),
+    camera_path: Path = typer.Option(None, "--camera", help="Camera JSON of --normals (default: the EXR header's).",
+                                     show_default=False),
     json_out: bool = typer.Option(False, "--json", help="Print the report as JSON."),
 ) -> None:
     """Per-vertex errors ‖fit − gt‖ over all / observed / unobserved vertices, and the distance of
     observed ground-truth vertices to the fitted surface.
 
         statfit eval fit.ply gt.ply --scan scan.ply --json
+        statfit eval fit.ply gt.ply --normals normals.exr --camera camera.json
     """
+    if scan is not None and normals is not None:
+        raise StatfitError("give --scan or --normals, not both")
+    if camera_path is not None and normals is None:
+        raise StatfitError("--camera goes with --normals")
     fit_vertices, faces = read_mesh(fit)
     gt_vertices, gt_faces = read_mesh(gt)
     if fit_vertices.shape != gt_vertices.shape or faces.shape != gt_faces.shape or (faces != gt_faces).any():
         raise StatfitError(f"{fit} and {gt} do not share a topology ({len(fit_vertices)} vs {len(gt_vertices)} vertices)")
-    observed = observed_vertices(gt_vertices, read_points(scan)) if scan is not None else None
+    observed = None
+    if scan is not None:
+        observed = observed_vertices(gt_vertices, read_points(scan))
+    elif normals is not None:
+        observed = _seen_vertices(gt_vertices, gt_faces, normals, camera_path)
     report = evaluate_fit(fit_vertices, gt_vertices, faces, observed)
     if json_out:
         print(json.dumps(report))
@@ -43,3 +58,15 @@ def evaluate(
             table.add_row(name, str(row["count"]), f"{row['mean']:.4g}", f"{row['median']:.4g}",
                           f"{row['max']:.4g}", f"{row['mean_rel']:.4f}")
     Console().print(table)
+
+
+def _seen_vertices(vertices: np.ndarray, faces: np.ndarray, normals: Path, camera_path: Path | None) -> np.ndarray:
+    normal_map = read_normal_map(normals)
+    if camera_path is not None:
+        camera = read_camera(camera_path)
+        check_camera_fits(camera, normal_map, str(camera_path))
+    elif normal_map.camera is not None:
+        camera = normal_map.camera
+    else:
+        raise StatfitError(f"{normals} carries no camera in its header; pass --camera camera.json")
+    return visible_vertices(vertices, faces, camera, normal_map.mask)

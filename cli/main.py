@@ -7,14 +7,15 @@ import warnings
 import typer
 
 from statfit.errors import StatfitError
-from statfit_cli import demo, evaluate, model, register, synth
+from statfit_cli import demo, evaluate, model, register, render, synth
 
 app = typer.Typer(
-    help="Fit a template mesh to limited observations (a partial scan) with statistical gradient filtering.\n\n"
+    help="Fit a template mesh to limited observations (a partial scan, or a normal map) with statistical gradient filtering.\n\n"
          "Start with `statfit demo`; `statfit COMMAND --help` explains each command.",
     no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False, rich_markup_mode=None,
 )
 app.command("register")(register.register)
+app.command("render")(render.render)
 app.command("demo")(demo.demo)
 app.command("eval")(evaluate.evaluate)
 app.add_typer(synth.app, name="synth")

@@ -12,7 +12,10 @@ from statfit.io.jsonlog import JsonLinesLog, versions
 from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_points, write_atomic
 from statfit.methods import resolve
 from statfit.register import register as fit_scan, resolve_device
-from statfit_cli.common import KOption, ModelOption, open_model, printed_warnings, progress_bar
+from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
+                                LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
+                                PowerOption, PresetOption, QuietOption, SeedOption, open_model, printed_warnings,
+                                progress_bar, setting_overrides)
 
 
 def _targets(scans: list[str], out: str | None, out_dir: Path | None, log: Path | None
@@ -39,35 +42,28 @@ def register(
                                       "'-' reads a PLY from standard input.", show_default=False),
     model_path: Path = ModelOption,
     k: int = KOption,
-    method: str = typer.Option("default", help="default (the measured best pipeline), statistical, hybrid, "
-                               "laplacian, pca, regularized or none."),
-    preset: str = typer.Option("tuned", help="tuned (our measured defaults) or paper (Nicolet-style "
-                               "settings of the paper, exactly)."),
+    method: str = MethodOption,
+    preset: str = PresetOption,
     out: str = typer.Option(None, "--out", "-o", help="Fitted mesh (.ply or .obj; '-' for PLY on stdout). "
                             "Default: <scan>_fit.ply here.", show_default=False),
     out_dir: Path = typer.Option(None, help="Folder for many scans: <scan>.ply and <scan>.jsonl each.",
                                  show_default=False),
-    log: Path = typer.Option(None, help="JSON-lines log: header, a record every 10 iterations, summary.",
-                             show_default=False),
+    log: Path = LogOption,
     align: str = typer.Option("none", help="Pre-alignment: none, rigid or similarity (ICP; similarity also "
                               "estimates scale, e.g. for a scan in other units)."),
-    device: str = typer.Option("cpu", help="auto, cpu or cuda."),
-    seed: int = typer.Option(0, help="Random seed; the same seed gives the same mesh."),
-    iterations: int = typer.Option(None, help="Iterations (all stages together). Default: the method's.",
-                                   show_default=False),
-    lr: float = typer.Option(None, help="Step size (fit frame: model centred, unit RMS radius).", show_default=False),
-    beta: float = typer.Option(None, help="β of the statistical/hybrid filter, or the regulariser's weight.",
-                               show_default=False),
-    power: float = typer.Option(None, help="Exponent p on the statistical filter (same as β' = (1+β)^p − 1).",
-                                show_default=False),
-    lam: float = typer.Option(None, help="λ of the Laplacian (laplacian, hybrid).", show_default=False),
-    laplacian: str = typer.Option(None, help="uniform or cotangent.", show_default=False),
-    mode_gain: float = typer.Option(None, help="γ: filter gain on mode j = (std_j/std_1)^γ; 0 is the paper's filter.",
-                                    show_default=False),
+    device: str = DeviceOption,
+    seed: int = SeedOption,
+    iterations: int = IterationsOption,
+    lr: float = LrOption,
+    beta: float = BetaOption,
+    power: float = PowerOption,
+    lam: float = LamOption,
+    laplacian: str = LaplacianOption,
+    mode_gain: float = ModeGainOption,
     refresh: int = typer.Option(10, help="Recompute closest surface points every N iterations."),
     trim: float = typer.Option(0.05, help="Fraction of farthest scan points ignored (outlier robustness)."),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
-    json_out: bool = typer.Option(False, "--json", help="Print each fit's summary as a JSON line on stdout."),
+    quiet: bool = QuietOption,
+    json_out: bool = JsonOption,
 ) -> None:
     """Non-rigid registration: deform the model's template onto a partial scan.
 
@@ -75,14 +71,11 @@ def register(
 
         statfit register scan.ply --model model.npz --method statistical --out fit.ply --log fit.jsonl
     """
-    if laplacian is not None and laplacian not in ("uniform", "cotangent"):
-        raise StatfitError(f"unknown Laplacian {laplacian!r}; choose uniform or cotangent")
+    overrides = setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain)
     if not 0 <= trim < 1:
         raise StatfitError("--trim must lie in [0, 1)")
     if refresh < 1:
         raise StatfitError("--refresh must be at least 1")
-    overrides = dict(iterations=iterations, lr=lr, beta=beta, power=power, lam=lam, laplacian=laplacian,
-                     mode_gain=mode_gain)
     stages = resolve(method, preset, **overrides)
     torch_device = resolve_device(device)
     targets = _targets(scans, out, out_dir, log)

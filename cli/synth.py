@@ -8,35 +8,52 @@ import typer
 
 from statfit.errors import StatfitError
 from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, points_bytes, write_atomic
-from statfit.synth import load_delta, sample_target, scan_from_view
+from statfit.io.normalmap import write_camera, write_normal_map
+from statfit.synth import camera_for_view, load_delta, render_target, sample_target, scan_from_view
 from statfit_cli.common import ModelOption, open_model
 
 app = typer.Typer(help="Make synthetic test data from a model, with its ground truth.", no_args_is_help=True)
 
 
+SeedOption = typer.Option(0, help="Seed of the shape (and of the point sampling).")
+SigmaOption = typer.Option(1.0, help="Coefficients ~ N(0, sigma²) in std-dev units.")
+GtOption = typer.Option(None, help="Ground-truth mesh (template topology).", show_default=False)
+DeltaOption = typer.Option(None, help="npz of off-model deltas (names (D,), deltas (N, 3, D)).", show_default=False)
+DeltaNameOption = typer.Option(None, help="Which delta to add, e.g. jawOpen.", show_default=False)
+DeltaWeightOption = typer.Option(1.0, help="Weight of the delta.")
+
+
+def check_delta_options(delta: Path | None, delta_name: str | None) -> None:
+    if (delta is None) != (delta_name is None):
+        raise StatfitError("--delta and --delta-name go together")
+
+
+def _target(model, rng: np.random.Generator, sigma: float, delta: Path | None, delta_name: str | None,
+            delta_weight: float) -> np.ndarray:
+    offset = load_delta(str(delta), delta_name) if delta is not None else None
+    return sample_target(model, rng, sigma, offset, delta_weight)
+
+
 @app.command("scan")
 def scan(
     out: Path = typer.Option(..., "--out", "-o", help="Scan point cloud (PLY).", show_default=False),
-    gt: Path = typer.Option(None, help="Ground-truth mesh (template topology).", show_default=False),
+    gt: Path = GtOption,
     model_path: Path = ModelOption,
-    seed: int = typer.Option(0, help="Seed of the shape and of the point sampling."),
-    sigma: float = typer.Option(1.0, help="Coefficients ~ N(0, sigma²) in std-dev units."),
+    seed: int = SeedOption,
+    sigma: float = SigmaOption,
     yaw: float = typer.Option(30.0, help="View direction, degrees about +y (0 looks at the +z face)."),
     pitch: float = typer.Option(0.0, help="View elevation, degrees."),
     points: int = typer.Option(4300, help="Number of scan points."),
     noise: float = typer.Option(0.0, help="Gaussian noise, as a fraction of the shape's RMS radius."),
     outliers: float = typer.Option(0.0, help="Fraction of points replaced by uniform outliers."),
-    delta: Path = typer.Option(None, help="npz of off-model deltas (names (D,), deltas (N, 3, D)).",
-                               show_default=False),
-    delta_name: str = typer.Option(None, help="Which delta to add, e.g. jawOpen.", show_default=False),
-    delta_weight: float = typer.Option(1.0, help="Weight of the delta."),
+    delta: Path = DeltaOption,
+    delta_name: str = DeltaNameOption,
+    delta_weight: float = DeltaWeightOption,
 ) -> None:
     """A model sample seen from one side: a partial scan plus its ground-truth mesh.
 
         statfit synth scan --model model.npz --seed 3 --out scan.ply --gt gt.ply
     """
-    if (delta is None) != (delta_name is None):
-        raise StatfitError("--delta and --delta-name go together")
     if points < 10:
         raise StatfitError("--points must be at least 10")
     if not 0 <= outliers < 1:
@@ -44,11 +61,49 @@ def scan(
     for target in (out, gt):
         if target is not None:
             check_writable(target)
+    check_delta_options(delta, delta_name)
     model = open_model(model_path)
     rng = np.random.default_rng(seed)
-    offset = load_delta(str(delta), delta_name) if delta is not None else None
-    shape = sample_target(model, rng, sigma, offset, delta_weight)
+    shape = _target(model, rng, sigma, delta, delta_name, delta_weight)
     cloud = scan_from_view(shape, model.faces, rng, points, yaw, pitch, noise, outliers)
     write_atomic(out, points_bytes(cloud))
+    if gt is not None:
+        write_atomic(gt, mesh_bytes(shape, model.faces, mesh_format(gt)))
+
+
+@app.command("normals")
+def normals(
+    out: Path = typer.Option(..., "--out", "-o", help="Normal map (OpenEXR, world-space normals + coverage; "
+                             "the camera in its header).", show_default=False),
+    camera_out: Path = typer.Option(None, help="Camera JSON.", show_default=False),
+    gt: Path = GtOption,
+    model_path: Path = ModelOption,
+    seed: int = SeedOption,
+    sigma: float = SigmaOption,
+    yaw: float = typer.Option(20.0, help="View direction, degrees about +y (0 looks at the +z face)."),
+    pitch: float = typer.Option(0.0, help="View elevation, degrees."),
+    size: int = typer.Option(512, help="Image width and height, pixels."),
+    fov: float = typer.Option(30.0, help="Vertical field of view, degrees."),
+    delta: Path = DeltaOption,
+    delta_name: str = DeltaNameOption,
+    delta_weight: float = DeltaWeightOption,
+) -> None:
+    """A model sample seen by a pinhole camera: a normal map plus its camera and ground truth.
+
+        statfit synth normals --model model.npz --seed 3 --yaw 20 --out normals.exr --camera-out camera.json --gt gt.ply
+    """
+    check_delta_options(delta, delta_name)
+    for target in (out, camera_out, gt):
+        if target is not None:
+            check_writable(target)
+    model = open_model(model_path)
+    shape = _target(model, np.random.default_rng(seed), sigma, delta, delta_name, delta_weight)
+    camera = camera_for_view(shape, yaw, pitch, size, fov)
+    normal_map, mask = render_target(shape, model.faces, camera)
+    if not mask.any():
+        raise StatfitError("the shape covers no pixel of the image")
+    write_normal_map(out, normal_map, mask, camera)
+    if camera_out is not None:
+        write_camera(camera_out, camera)
     if gt is not None:
         write_atomic(gt, mesh_bytes(shape, model.faces, mesh_format(gt)))

@@ -7,6 +7,7 @@ from scipy.spatial import cKDTree
 
 from statfit.closest import ClosestPointQuery
 from statfit.frame import Frame
+from statfit.render import Camera, rasterize
 
 
 def observed_vertices(vertices: np.ndarray, points: np.ndarray, radius: float | None = None) -> np.ndarray:
@@ -18,6 +19,18 @@ def observed_vertices(vertices: np.ndarray, points: np.ndarray, radius: float | 
         radius = 3.0 * float(np.median(spacing[:, 1]))
     dist, _ = tree.query(vertices, k=1)
     return dist <= radius
+
+
+def visible_vertices(vertices: np.ndarray, faces: np.ndarray, camera: Camera, mask: np.ndarray | None = None
+                     ) -> np.ndarray:
+    """Boolean mask (N,): vertices of the triangles that cover a pixel of ``camera``'s image (and,
+    with ``mask`` (H, W), a pixel on the mask): the part of the mesh a normal map observes."""
+    fragments = rasterize(torch.as_tensor(vertices, dtype=torch.float64), torch.as_tensor(faces, dtype=torch.long),
+                          camera)
+    seen = fragments.face if mask is None else fragments.face[torch.as_tensor(mask).reshape(-1)[fragments.pixel]]
+    visible = np.zeros(len(vertices), dtype=bool)
+    visible[faces[np.unique(seen.numpy())].reshape(-1)] = True
+    return visible
 
 
 def surface_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

@@ -16,6 +16,7 @@ from typing import Iterator
 
 import numpy as np
 import OpenEXR
+from PIL import Image
 
 from statfit.errors import StatfitError
 from statfit.io.mesh import write_atomic
@@ -76,6 +77,19 @@ def apply_mask(normal_map: NormalMap, mask: np.ndarray, source: str) -> NormalMa
                            f"{normal_map.mask.shape[1]}×{normal_map.mask.shape[0]}")
     normals, mask = _validated(normal_map.normals, np.linalg.norm(normal_map.normals, axis=-1), mask, source)
     return NormalMap(normals, mask, normal_map.camera)
+
+
+def read_mask(path: str | Path) -> np.ndarray:
+    """A coverage mask (H, W) bool from an image file (PNG, ...): white (> 50% grey) is foreground."""
+    path = Path(path)
+    if not path.is_file():
+        raise StatfitError(f"mask not found: {path}")
+    try:
+        with Image.open(path) as image:
+            grey = np.asarray(image.convert("L"), dtype=np.float32) / 255.0
+    except (OSError, ValueError) as exc:
+        raise StatfitError(f"cannot read mask {path}: {exc}") from None
+    return grey > 0.5
 
 
 def _validated(normals: np.ndarray, length: np.ndarray, mask: np.ndarray, source) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,125 @@
+"""``statfit render``: fit the model's template to one normal map (inverse rendering)."""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import typer
+
+from statfit.errors import StatfitError
+from statfit.inverse_render import camera_space_normals, reconstruct
+from statfit.io.jsonlog import JsonLinesLog, versions
+from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_mesh, write_atomic
+from statfit.io.normalmap import apply_mask, check_camera_fits, read_camera, read_mask, read_normal_map
+from statfit.methods import resolve
+from statfit.objectives.normals import SILHOUETTE_WEIGHT
+from statfit.register import resolve_device
+from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
+                                LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
+                                PowerOption, PresetOption, QuietOption, SeedOption, open_model, printed_warnings,
+                                progress_bar, setting_overrides)
+
+
+def render(
+    normal_map_path: Path = typer.Argument(..., metavar="NORMALS.EXR", help="Normal map: OpenEXR with R, G, B = unit "
+                                           "normal and A = coverage (docs/formats.md).", show_default=False),
+    camera_path: Path = typer.Option(None, "--camera", "-c", help="Camera JSON (width, height, K, world_to_camera). "
+                                     "Default: the camera in the EXR header.", show_default=False),
+    model_path: Path = ModelOption,
+    k: int = KOption,
+    method: str = MethodOption,
+    preset: str = PresetOption,
+    out: Path = typer.Option(None, "--out", "-o", help="Fitted mesh (.ply or .obj). Default: <normals>_fit.ply here.",
+                             show_default=False),
+    log: Path = LogOption,
+    preview: Path = typer.Option(None, help="PNG: target and fitted normals, angular error, a second view.",
+                                 show_default=False),
+    align: str = typer.Option("rigid", help="Initial alignment: rigid (rotation and a move parallel to the image, "
+                              "jointly with the model's coefficients), similarity (also a scale), or none."),
+    init: Path = typer.Option(None, help="Start from this mesh (the model's topology, the camera's world frame) "
+                              "instead of the template.", show_default=False),
+    normal_space: str = typer.Option("world", help="Frame of the map's normals: world or camera."),
+    normal_convention: str = typer.Option("opencv", help="Axes of camera-space normals: opencv (x right, y down, "
+                                          "z forward) or opengl (x right, y up, z towards the viewer)."),
+    mask: Path = typer.Option(None, help="Mask image (white = foreground) replacing the EXR's alpha.",
+                              show_default=False),
+    silhouette_weight: float = typer.Option(SILHOUETTE_WEIGHT, help="Weight of the silhouette term (0: off)."),
+    device: str = DeviceOption,
+    seed: int = SeedOption,
+    iterations: int = IterationsOption,
+    lr: float = LrOption,
+    beta: float = BetaOption,
+    power: float = PowerOption,
+    lam: float = LamOption,
+    laplacian: str = LaplacianOption,
+    mode_gain: float = ModeGainOption,
+    quiet: bool = QuietOption,
+    json_out: bool = JsonOption,
+) -> None:
+    """Inverse rendering: deform the model's template until its rendered normals and silhouette
+    match a normal map seen from a known camera.
+
+    The output mesh has the template's topology and vertex order, in the camera's world frame.
+    Example:
+
+        statfit render normals.exr --camera camera.json --model model.npz --out fit.ply --preview fit.png
+    """
+    overrides = setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain)
+    if silhouette_weight < 0:
+        raise StatfitError("--silhouette-weight must be at least 0")
+    stages = resolve(method, preset, job="render", **overrides)
+    torch_device = resolve_device(device)
+    out = out or Path(f"{normal_map_path.stem}_fit.ply")
+    for target in (out, log, preview):
+        if target is not None:
+            check_writable(target)
+    normal_map = read_normal_map(normal_map_path)
+    if mask is not None:
+        normal_map = apply_mask(normal_map, read_mask(mask), str(mask))
+    if camera_path is not None:
+        camera = read_camera(camera_path)
+        check_camera_fits(camera, normal_map, str(camera_path))
+    elif normal_map.camera is not None:
+        camera = normal_map.camera
+    else:
+        raise StatfitError(f"{normal_map_path} carries no camera in its header; pass --camera camera.json")
+    model = open_model(model_path, k)
+    start = None
+    if init is not None:
+        start, faces = read_mesh(init)
+        if faces.shape != model.faces.shape or (faces != model.faces).any():
+            raise StatfitError(f"{init} does not have the model's topology")
+    target_normals = camera_space_normals(normal_map, camera, normal_space, normal_convention)
+    total = sum(s.iterations for s in stages)
+    started = time.perf_counter()
+    record = JsonLinesLog(log)
+    record.write("header", command="render", method=method, preset=preset, stages=[s.describe() for s in stages],
+                 model=model.source, modes=model.num_modes, input=str(normal_map_path), camera=camera.to_dict(),
+                 pixels=int(normal_map.mask.sum()), align=align, init=str(init) if init else None,
+                 normal_space=normal_space, normal_convention=normal_convention,
+                 silhouette_weight=silhouette_weight, device=str(torch_device), seed=seed, versions=versions())
+    with progress_bar(total, normal_map_path.name, not quiet) as advance:
+        def on_record(iteration: int, terms: dict[str, float]) -> None:
+            advance(iteration, terms)
+            record.write("record", iteration=iteration, **terms, elapsed=time.perf_counter() - started)
+
+        with printed_warnings():
+            result = reconstruct(model, normal_map, camera, stages=stages, normal_space=normal_space,
+                                 normal_convention=normal_convention, align=align, init=start,
+                                 device=str(torch_device), silhouette_weight=silhouette_weight, seed=seed,
+                                 on_record=on_record)
+    summary = {"input": str(normal_map_path), "output": str(out), "method": method, "iterations": total,
+               "final_loss": result.loss, "seconds": result.seconds, "stage_seconds": result.stage_seconds,
+               "model_to_world": result.pose.as_matrix()}
+    record.write("summary", **summary)
+    preview_bytes = None
+    if preview is not None:
+        from statfit.preview import preview_png  # matplotlib is imported only when a preview is asked for
+        preview_bytes = preview_png(target_normals, normal_map.mask, result.vertices, model.faces, camera)
+    write_atomic(out, mesh_bytes(result.vertices, model.faces, mesh_format(out)))
+    if preview_bytes is not None:
+        write_atomic(preview, preview_bytes)
+    record.close()
+    if json_out:
+        print(json.dumps(summary))
