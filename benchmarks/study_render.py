@@ -34,7 +34,8 @@ from statfit.synth import camera_for_view, load_delta, render_target, sample_tar
 
 ROOT = Path(__file__).resolve().parents[1]
 ICT = ROOT.parent / "shared" / "data" / "ict-face"
-RESULTS = ROOT / "benchmarks" / "results" / "study_render.json"
+RESULTS_DIR = ROOT / "benchmarks" / "results"
+RESULTS = RESULTS_DIR / "study_render.json"
 
 
 @dataclass(frozen=True)
@@ -98,8 +99,8 @@ def errors(fit: np.ndarray, gt: np.ndarray, visible: np.ndarray) -> dict[str, fl
     return {"all": float(err.mean()), "visible": float(err[visible].mean()), "hidden": float(err[~visible].mean())}
 
 
-def load_results() -> list[dict]:
-    return json.loads(RESULTS.read_text()) if RESULTS.exists() else []
+def load_results(path: Path = RESULTS) -> list[dict]:
+    return json.loads(path.read_text()) if path.exists() else []
 
 
 def report(results: list[dict]) -> str:
@@ -126,9 +127,11 @@ def main() -> None:
     parser.add_argument("--cases", default=",".join(c.name for c in CASES))
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--report", action="store_true")
+    parser.add_argument("--results", type=Path, default=RESULTS,
+                        help="Results file (parallel runs write to separate files; --report merges them).")
     args = parser.parse_args()
     if args.report:
-        print(report(load_results()))
+        print(report([r for path in sorted(RESULTS_DIR.glob("study_render*.json")) for r in load_results(path)]))
         return
     torch.set_num_threads(args.threads)
     model = load_model(ICT / "ict_face_identity.npz")
@@ -137,7 +140,7 @@ def main() -> None:
         visible = visible_vertices(gt, model.faces, camera, normal_map.mask)
         template = errors(model.template, gt, visible)
         for name in args.configs.split(","):
-            results = load_results()
+            results = load_results(args.results)
             if any(r["case"] == case.name and r["config"] == name and r["size"] == args.size for r in results):
                 continue
             method, preset, kwargs = CONFIGS[name]
@@ -150,8 +153,8 @@ def main() -> None:
             row |= {"case": case.name, "config": name, "size": args.size, "template": template["all"],
                     "seconds": time.perf_counter() - started}
             print(json.dumps(row), flush=True)
-            RESULTS.parent.mkdir(exist_ok=True)
-            RESULTS.write_text(json.dumps(load_results() + [row], indent=1))
+            args.results.parent.mkdir(exist_ok=True)
+            args.results.write_text(json.dumps(load_results(args.results) + [row], indent=1))
 
 
 if __name__ == "__main__":
