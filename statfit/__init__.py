@@ -3,7 +3,8 @@ __version__ = "0.1.0"
 
 from statfit.errors import DivergenceError, StatfitError
 from statfit.model import StatModel, load_model, model_from_arrays
+from statfit.inverse_render import Reconstruction, reconstruct
 from statfit.register import Registration, register
 
-__all__ = ["StatModel", "load_model", "model_from_arrays", "register", "Registration",
+__all__ = ["StatModel", "load_model", "model_from_arrays", "register", "Registration", "reconstruct", "Reconstruction",
            "StatfitError", "DivergenceError", "__version__"]
