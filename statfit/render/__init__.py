@@ -4,9 +4,9 @@
 ``interpolate`` vertex attributes, ``antialias`` (or ``silhouette_crossings(...).blend``) for
 gradients at silhouettes, ``render_normals`` for the whole chain (normal map and mask).
 """
-from statfit.render.antialias import EdgeCrossings, MeshAdjacency, antialias, silhouette_crossings
+from statfit.render.silhouette import EdgeCrossings, MeshAdjacency, antialias, silhouette_crossings
 from statfit.render.camera import Camera
-from statfit.render.rasterize import Fragments, interpolate, interpolate_fragments, rasterize
+from statfit.render.raster import Fragments, interpolate, interpolate_fragments, rasterize
 from statfit.render.shading import normal_image, render_normals, vertex_normals
 
 __all__ = ["Camera", "EdgeCrossings", "Fragments", "MeshAdjacency", "antialias", "interpolate",

@@ -6,9 +6,9 @@ from typing import Literal
 import torch
 
 from statfit.errors import StatfitError
-from statfit.render.antialias import MeshAdjacency, silhouette_crossings
+from statfit.render.silhouette import MeshAdjacency, silhouette_crossings
 from statfit.render.camera import Camera
-from statfit.render.rasterize import Fragments, interpolate_fragments, rasterize
+from statfit.render.raster import Fragments, interpolate_fragments, rasterize
 
 
 def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from statfit.render.rasterize import Fragments
+from statfit.render.raster import Fragments
 
 _EPS = 1.0 / 16.0  # tolerated crossing overshoot beyond the pixel pair, in pixels (as nvdiffrast)
 _WALK_STEPS = 3    # triangles followed along a pixel pair, the foreground pixel's included
