@@ -25,7 +25,7 @@ from statfit.errors import StatfitError
 from statfit.fit import StageTimer, run_fit
 from statfit.frame import Frame
 from statfit.io.normalmap import NormalMap
-from statfit.methods import Settings, build, resolve
+from statfit.methods import FitSpace, Settings, build, resolve
 from statfit.model import StatModel
 from statfit.objectives.normals import SILHOUETTE_WEIGHT, NormalMapObjective
 from statfit.pose import fit_pose
@@ -38,6 +38,7 @@ NORMAL_CONVENTIONS = ("opencv", "opengl")
 POSE_ITERATIONS = 200
 POSE_LR = 0.01
 GOOD_OVERLAP = 0.7
+POSE_GAIN = 0.1
 
 
 @dataclass
@@ -160,12 +161,8 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
         with timer("alignment"):
             unit_camera = camera_in_frame(camera, frame)
             guess = _centring_guess(x0, faces, unit_camera, normal_map.mask, align == "similarity")
-            # The model's coefficients move jointly with the pose (from the start shape), so that
-            # the pose does not absorb differences of shape; the fit then starts from that shape.
-            shape_basis = (space.basis_t * space.std[:, None]).view(len(space.std), -1, 3)
-            pose, x0 = fit_pose(x0, objective_for(Similarity()), with_scale=align == "similarity",
-                                iterations=POSE_ITERATIONS, lr=POSE_LR, start=guess,
-                                fixed_axis=unit_camera.rotation[2].to(dtype), shape_basis=shape_basis)
+            pose, x0 = _align(x0, objective_for(Similarity()), space, guess, align == "similarity",
+                              unit_camera.rotation[2].to(dtype))
     objective = objective_for(pose)
     x, done, loss = x0, 0, {}
     for settings in stages:
@@ -177,6 +174,22 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
     world_pose = Similarity(pose.scale, pose.rotation,
                             frame.scale * pose.translation + frame.center - pose.scale * pose.rotation @ frame.center)
     return Reconstruction(vertices, world_pose, stages, loss, time.perf_counter() - started, dict(timer.seconds))
+
+
+def _align(start: torch.Tensor, objective: NormalMapObjective, space: FitSpace, guess: Similarity,
+           with_scale: bool, view_axis: torch.Tensor) -> tuple[Similarity, torch.Tensor]:
+    """The model → unit-frame pose and the start shape for the fit.
+
+    The model's coefficients are fitted jointly with the pose (so that the pose does not absorb
+    differences of shape), and, as a reference, alone with the pose held at ``guess``; the pose
+    is kept only where it lowers the objective by ``POSE_GAIN`` or more (from one view, small
+    rotations trade off against expressions and identity)."""
+    basis = (space.basis_t * space.std[:, None]).view(len(space.std), -1, 3)
+    common = dict(iterations=POSE_ITERATIONS, lr=POSE_LR, start=guess, fixed_axis=view_axis, shape_basis=basis)
+    moved = fit_pose(start, objective, with_scale=with_scale, **common)
+    still = fit_pose(start, objective, move=False, **common)
+    chosen = moved if moved.loss < (1.0 - POSE_GAIN) * still.loss else still
+    return chosen.pose, chosen.shape
 
 
 def _checked_init(init: np.ndarray, model: StatModel) -> np.ndarray:

@@ -1,6 +1,7 @@
 """Gradient-based rigid or similarity pose of a fixed shape against any differentiable objective."""
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
@@ -11,6 +12,15 @@ from statfit.align import Similarity
 Loss = Callable[[torch.Tensor], dict[str, torch.Tensor]]
 
 
+@dataclass(frozen=True)
+class PoseFit:
+    """The best pose found, its (unposed) shape (N, 3) and the objective's value there."""
+
+    pose: Similarity
+    shape: torch.Tensor
+    loss: float
+
+
 def _skew(omega: torch.Tensor) -> torch.Tensor:
     zero = omega.new_zeros(())
     x, y, z = omega.unbind()
@@ -19,7 +29,7 @@ def _skew(omega: torch.Tensor) -> torch.Tensor:
 
 def fit_pose(vertices: torch.Tensor, loss: Loss, *, with_scale: bool = False, iterations: int = 200,
              lr: float = 0.01, start: Similarity | None = None, fixed_axis: torch.Tensor | None = None, shape_basis: torch.Tensor | None = None,
-             shape_prior: float = 1e-3) -> tuple[Similarity, torch.Tensor]:
+             shape_prior: float = 1e-3, move: bool = True) -> PoseFit:
     """The pose y = s·R·x + t of ``vertices`` (N, 3) that minimises ``sum(loss(y).values())``.
 
     Adam on a rotation vector (exponential map), a translation and, ``with_scale``, log s; the
@@ -28,7 +38,8 @@ def fit_pose(vertices: torch.Tensor, loss: Loss, *, with_scale: bool = False, it
     camera's viewing axis, along which one view barely constrains it). Starts from ``start``
     (default: the identity). ``shape_basis`` (K, N, 3): the shape varies jointly as
     ``vertices + Σ c_k basis_k`` with a penalty ``shape_prior·‖c‖²``, so that the pose need not
-    explain differences of shape. Returns the best pose seen and its shape (N, 3), unposed.
+    explain differences of shape; ``move=False`` keeps the pose at ``start`` and fits the shape
+    only. Returns the best pose seen, with its shape and objective value.
     """
     dtype, device = vertices.dtype, vertices.device
     centre = vertices.detach().mean(dim=0)
@@ -44,7 +55,8 @@ def fit_pose(vertices: torch.Tensor, loss: Loss, *, with_scale: bool = False, it
     log_scale = torch.tensor(float(np.log(start.scale)), dtype=dtype, device=device, requires_grad=with_scale)
     coefficients = torch.zeros(0 if shape_basis is None else len(shape_basis), dtype=dtype, device=device,
                                requires_grad=shape_basis is not None)
-    params = [omega, step] + ([log_scale] if with_scale else []) + ([coefficients] if shape_basis is not None else [])
+    params = (([omega, step] + ([log_scale] if with_scale else [])) if move else []) \
+        + ([coefficients] if shape_basis is not None else [])
     optimizer = torch.optim.Adam(params, lr=lr)
     centred = vertices.detach() - centre
 
@@ -74,4 +86,4 @@ def fit_pose(vertices: torch.Tensor, loss: Loss, *, with_scale: bool = False, it
     centre64 = centre.double().cpu().numpy()
     # y = s R (x − c) + c + t  ⇒  t' = c + t − s R c
     pose = Similarity(scale, rotation, centre64 + translation.double().cpu().numpy() - scale * rotation @ centre64)
-    return pose, best_shape
+    return PoseFit(pose, best_shape, best_value)

@@ -97,8 +97,8 @@ def test_pose_search_recovers_a_known_rigid_motion(embedded_model, scene):
     unit_camera = camera_in_frame(camera, frame)
     moved = frame.from_unit(truth.apply(frame.to_unit(template)))
     objective = _objective(embedded_model, frame.to_unit(moved), unit_camera, torch.float32)
-    found, _ = fit_pose(torch.as_tensor(frame.to_unit(template), dtype=torch.float32), objective, iterations=300,
-                        fixed_axis=unit_camera.rotation[2].float())
+    found = fit_pose(torch.as_tensor(frame.to_unit(template), dtype=torch.float32), objective, iterations=300,
+                     fixed_axis=unit_camera.rotation[2].float()).pose
     angle = np.degrees(Rotation.from_matrix(found.rotation @ truth.rotation.T).magnitude())
     assert angle < 1.0
     unit = frame.to_unit(template)
@@ -117,3 +117,12 @@ def test_rigid_alignment_recovers_a_moved_target(embedded_model, scene):
                           iterations=150)
         errors[align] = float(np.linalg.norm(fit.vertices - moved, axis=1).mean())
     assert errors["rigid"] < 0.5 * errors["none"], errors
+    assert np.degrees(Rotation.from_matrix(fit.pose.rotation @ turn.T).magnitude()) < 2.0
+
+
+def test_rigid_alignment_leaves_a_target_in_place_in_place(embedded_model, scene):
+    shape, camera = scene
+    normals, mask = render_target(shape, embedded_model.faces, camera)
+    fit = reconstruct(embedded_model, NormalMap(normals, mask), camera, "statistical", iterations=1)
+    np.testing.assert_array_equal(fit.pose.rotation, np.eye(3))
+    np.testing.assert_array_equal(fit.pose.translation, np.zeros(3))
