@@ -11,7 +11,7 @@ from rich.table import Table
 
 from statfit.errors import StatfitError
 from statfit.io.mesh import read_mesh, read_points
-from statfit.io.normalmap import check_camera_fits, read_camera, read_normal_map
+from statfit.io.normalmap import camera_for_map, read_normal_map
 from statfit.metrics import evaluate as evaluate_fit, observed_vertices, visible_vertices
 
 
@@ -60,13 +60,7 @@ def evaluate(
     Console().print(table)
 
 
+
 def _seen_vertices(vertices: np.ndarray, faces: np.ndarray, normals: Path, camera_path: Path | None) -> np.ndarray:
     normal_map = read_normal_map(normals)
-    if camera_path is not None:
-        camera = read_camera(camera_path)
-        check_camera_fits(camera, normal_map, str(camera_path))
-    elif normal_map.camera is not None:
-        camera = normal_map.camera
-    else:
-        raise StatfitError(f"{normals} carries no camera in its header; pass --camera camera.json")
-    return visible_vertices(vertices, faces, camera, normal_map.mask)
+    return visible_vertices(vertices, faces, camera_for_map(normal_map, camera_path, normals), normal_map.mask)

@@ -11,7 +11,7 @@ from statfit.errors import StatfitError
 from statfit.inverse_render import camera_space_normals, reconstruct
 from statfit.io.jsonlog import JsonLinesLog, versions
 from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_mesh, write_atomic
-from statfit.io.normalmap import apply_mask, check_camera_fits, read_camera, read_mask, read_normal_map
+from statfit.io.normalmap import apply_mask, camera_for_map, read_mask, read_normal_map
 from statfit.methods import resolve
 from statfit.objectives.normals import SILHOUETTE_WEIGHT
 from statfit.register import resolve_device
@@ -77,13 +77,7 @@ def render(
     normal_map = read_normal_map(normal_map_path)
     if mask is not None:
         normal_map = apply_mask(normal_map, read_mask(mask), str(mask))
-    if camera_path is not None:
-        camera = read_camera(camera_path)
-        check_camera_fits(camera, normal_map, str(camera_path))
-    elif normal_map.camera is not None:
-        camera = normal_map.camera
-    else:
-        raise StatfitError(f"{normal_map_path} carries no camera in its header; pass --camera camera.json")
+    camera = camera_for_map(normal_map, camera_path, normal_map_path)
     model = open_model(model_path, k)
     start = None
     if init is not None:

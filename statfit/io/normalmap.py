@@ -118,6 +118,18 @@ def check_camera_fits(camera: Camera, normal_map: NormalMap, source: str) -> Non
                            f"{width}×{height}")
 
 
+def camera_for_map(normal_map: NormalMap, camera_path: str | Path | None, source: str | Path) -> Camera:
+    """The camera of a normal map read from ``source``: from ``camera_path`` (JSON) if given,
+    checked against the map's size, else from the map's header."""
+    if camera_path is not None:
+        camera = read_camera(camera_path)
+        check_camera_fits(camera, normal_map, str(camera_path))
+        return camera
+    if normal_map.camera is None:
+        raise StatfitError(f"{source} carries no camera in its header; pass --camera camera.json")
+    return normal_map.camera
+
+
 def write_normal_map(path: str | Path, normals: np.ndarray, mask: np.ndarray, camera: Camera | None = None) -> None:
     """Write normals (H, W, 3) and mask (H, W) as a float EXR (R, G, B, A), atomically; with
     ``camera``, its K and world_to_camera go into the header."""
