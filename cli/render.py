@@ -35,8 +35,9 @@ def render(
     log: Path = LogOption,
     preview: Path = typer.Option(None, help="PNG: target and fitted normals, angular error, a second view.",
                                  show_default=False),
-    align: str = typer.Option("rigid", help="Initial alignment: rigid (rotation and a move parallel to the image, "
-                              "jointly with the model's coefficients), similarity (also a scale), or none."),
+    align: str = typer.Option("rigid", help="Initial alignment: rigid (the model's coefficients, with a rotation and "
+                              "a move parallel to the image where they lower the objective by 10%), similarity "
+                              "(also a scale), or none (start from the template as it is)."),
     init: Path = typer.Option(None, help="Start from this mesh (the model's topology, the camera's world frame) "
                               "instead of the template.", show_default=False),
     normal_space: str = typer.Option("world", help="Frame of the map's normals: world or camera."),
