@@ -39,6 +39,7 @@ POSE_ITERATIONS = 200
 POSE_LR = 0.01
 GOOD_OVERLAP = 0.7
 POSE_GAIN = 0.1
+ALIGN_SIZE = 256  # the alignment runs on the map reduced by an integer factor to about this size
 
 
 @dataclass
@@ -152,18 +153,15 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
     faces = torch.as_tensor(model.faces, dtype=torch.long, device=torch_device)
     x0 = torch.as_tensor(frame.to_unit(start_shape), dtype=dtype, device=torch_device)
 
-    def objective_for(pose: Similarity) -> NormalMapObjective:
-        return NormalMapObjective(target, mask, camera_in_frame(camera, frame, pose), faces, silhouette_weight)
-
     timer = timer or StageTimer(sync=torch_device.type == "cuda")
     pose = Similarity()
     if align != "none":
         with timer("alignment"):
             unit_camera = camera_in_frame(camera, frame)
             guess = _centring_guess(x0, faces, unit_camera, normal_map.mask, align == "similarity")
-            pose, x0 = _align(x0, objective_for(Similarity()), space, guess, align == "similarity",
-                              unit_camera.rotation[2].to(dtype))
-    objective = objective_for(pose)
+            coarse = NormalMapObjective(*downsampled(target, mask, unit_camera, ALIGN_SIZE), faces, silhouette_weight)
+            pose, x0 = _align(x0, coarse, space, guess, align == "similarity", unit_camera.rotation[2].to(dtype))
+    objective = NormalMapObjective(target, mask, camera_in_frame(camera, frame, pose), faces, silhouette_weight)
     x, done, loss = x0, 0, {}
     for settings in stages:
         param, optimizer = build(settings, space, x)
@@ -174,6 +172,27 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
     world_pose = Similarity(pose.scale, pose.rotation,
                             frame.scale * pose.translation + frame.center - pose.scale * pose.rotation @ frame.center)
     return Reconstruction(vertices, world_pose, stages, loss, time.perf_counter() - started, dict(timer.seconds))
+
+
+def downsampled(normals: torch.Tensor, mask: torch.Tensor, camera: Camera, size: int
+                ) -> tuple[torch.Tensor, torch.Tensor, Camera]:
+    """The map reduced by the integer factor f = min(H, W) // ``size`` (≥ 1): f×f blocks, a block
+    is foreground where at least half its pixels are, with their mean normal renormalised; the
+    camera's K scaled by 1/f (the last rows/columns that do not fill a block are dropped)."""
+    factor = max(1, min(mask.shape) // size)
+    if factor == 1:
+        return normals, mask, camera
+    height, width = mask.shape[0] // factor, mask.shape[1] // factor
+    blocks = lambda image: image[: height * factor, : width * factor].reshape(  # noqa: E731
+        height, factor, width, factor, -1).sum(dim=(1, 3))
+    covered = blocks(mask[..., None].to(normals.dtype))[..., 0]
+    summed = blocks(normals * mask[..., None])
+    coarse_mask = covered >= factor * factor / 2
+    length = summed.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(normals.dtype).tiny)
+    coarse = torch.where(coarse_mask[..., None], summed / length, 0.0)
+    K = camera.K.clone()
+    K[:2] /= factor
+    return coarse, coarse_mask, Camera(width, height, K, camera.world_to_camera)
 
 
 def _align(start: torch.Tensor, objective: NormalMapObjective, space: FitSpace, guess: Similarity,

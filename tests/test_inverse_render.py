@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from statfit.align import Similarity
 from statfit.frame import Frame
-from statfit.inverse_render import camera_in_frame, camera_space_normals, reconstruct
+from statfit.inverse_render import camera_in_frame, camera_space_normals, downsampled, reconstruct
 from statfit.io.normalmap import NormalMap
 from statfit.objectives.normals import NormalMapObjective
 from statfit.pose import fit_pose
@@ -126,3 +126,17 @@ def test_rigid_alignment_leaves_a_target_in_place_in_place(embedded_model, scene
     fit = reconstruct(embedded_model, NormalMap(normals, mask), camera, "statistical", iterations=1)
     np.testing.assert_array_equal(fit.pose.rotation, np.eye(3))
     np.testing.assert_array_equal(fit.pose.translation, np.zeros(3))
+
+
+def test_downsampled_map_matches_a_render_at_the_reduced_camera(embedded_model, scene):
+    shape, _ = scene
+    camera = camera_for_view(shape, 20.0, 5.0, 2 * SIZE)
+    normals, mask = render_target(shape, embedded_model.faces, camera)
+    target = torch.as_tensor(camera_space_normals(NormalMap(normals, mask), camera))
+    coarse, coarse_mask, coarse_camera = downsampled(target, torch.as_tensor(mask), camera, SIZE)
+    assert (coarse_camera.width, coarse_camera.height) == (SIZE, SIZE)
+    expected_normals, expected_mask = render_target(shape, embedded_model.faces, coarse_camera)
+    expected = camera_space_normals(NormalMap(expected_normals, expected_mask), coarse_camera)
+    both = coarse_mask.numpy() & expected_mask
+    assert (coarse_mask.numpy() == expected_mask).mean() > 0.995
+    assert np.abs(coarse.numpy()[both] - expected[both]).mean() < 0.01
