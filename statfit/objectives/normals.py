@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import torch
 
-from statfit.render import Camera, MeshAdjacency, normal_image, rasterize, silhouette_crossings
+from statfit.render import (Camera, MeshAdjacency, interpolate_fragments, rasterize, silhouette_crossings,
+                            vertex_normals)
 
 SILHOUETTE_WEIGHT = 1.0
 
@@ -25,6 +26,9 @@ class NormalMapObjective:
         coverage; faces: (F, 3) long on the normals' device."""
         self.normals = normals
         self.mask = mask.to(normals.dtype)
+        # Per-pixel lookups of the target at the covered pixels: normals (3, H·W), mask (H·W,).
+        self._normals_by_pixel = normals.reshape(-1, 3).T.contiguous()
+        self._mask_by_pixel = self.mask.reshape(-1)
         self.camera = camera
         self.faces = faces
         self.silhouette_weight = silhouette_weight
@@ -36,12 +40,15 @@ class NormalMapObjective:
 
     def __call__(self, vertices: torch.Tensor) -> dict[str, torch.Tensor]:
         fragments = rasterize(vertices, self.faces, self.camera)
-        coverage = fragments.coverage(vertices.dtype)
-        normals = normal_image(vertices, self.faces, fragments, self.camera, space="camera")
-        both = coverage[..., 0] * self.mask
-        normal = ((normals - self.normals).abs().sum(dim=-1) * both).sum() / both.sum().clamp_min(1.0)
+        # The normal term is evaluated on the covered pixels only (C, M), never on the whole image.
+        rotated = vertex_normals(vertices, self.faces) @ self.camera.rotation.to(vertices).T
+        normals = interpolate_fragments(rotated, self.faces, fragments, normalize=True)          # (3, M)
+        target = self._normals_by_pixel.index_select(1, fragments.pixel)
+        both = self._mask_by_pixel.index_select(0, fragments.pixel)
+        normal = ((normals - target).abs().sum(dim=0) * both).sum() / both.sum().clamp_min(1.0)
         terms = {"normal": normal}
         if self.silhouette_weight:
+            coverage = fragments.coverage(vertices.dtype)
             mask = silhouette_crossings(fragments, self.faces, self.adjacency).blend(coverage)[..., 0]
             terms["silhouette"] = self.silhouette_weight * (mask - self.mask).square().sum() / self.count
         return terms
