@@ -1,48 +1,63 @@
 """End to end on the real ICT head model: one normal map (256², yaw 20°) of an identity sample plus
 the jawOpen expression (outside the identity model); every fit is scored against the ground truth
-over all vertices. What is asserted is what the rendering study measured (docs/benchmarks.md §5)."""
+over all vertices. What is asserted is what the rendering study measured (docs/benchmarks.md §5).
+
+The four 3000-iteration fits run two at a time, one thread each: at 256² a fit gains little from a
+second thread, so this halves the wall time on a 2-core machine.
+"""
 from __future__ import annotations
+
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 import pytest
 
-from statfit.io.normalmap import NormalMap
-from statfit.inverse_render import reconstruct
-from statfit.synth import camera_for_view, render_target, sample_target
+from conftest import ICT_DIR
 
 pytestmark = pytest.mark.slow
 
 SIZE = 256
+RUNS = {"paper statistical": ("statistical", "paper"), "paper laplacian": ("laplacian", "paper"),
+        "tuned pca": ("pca", "tuned"), "default": ("default", "tuned")}
 
 
-@pytest.fixture(scope="module")
-def case(ict_model, ict_expressions):
-    names, deltas = ict_expressions
-    truth = sample_target(ict_model, np.random.default_rng(3), 1.0, deltas[..., names.index("jawOpen")], 0.8)
+def fit_error(method: str, preset: str) -> float:
+    """Relative mean vertex error of one fit of the jaw-open case (runs in a worker process)."""
+    import torch
+
+    from statfit.io.normalmap import NormalMap
+    from statfit.inverse_render import reconstruct
+    from statfit.model import load_model
+    from statfit.synth import camera_for_view, load_delta, render_target, sample_target
+
+    torch.set_num_threads(1)
+    model = load_model(ICT_DIR / "ict_face_identity.npz")
+    truth = sample_target(model, np.random.default_rng(3), 1.0,
+                          load_delta(str(ICT_DIR / "ict_face_expressions.npz"), "jawOpen"), 0.8)
+    if method == "template":
+        return _relative_error(model.template, truth)
     camera = camera_for_view(truth, 20.0, 0.0, SIZE)
-    return truth, camera, NormalMap(*render_target(truth, ict_model.faces, camera))
+    normal_map = NormalMap(*render_target(truth, model.faces, camera))
+    return _relative_error(reconstruct(model, normal_map, camera, method, preset=preset).vertices, truth)
+
+
+def _relative_error(vertices: np.ndarray, truth: np.ndarray) -> float:
+    scale = np.sqrt(((truth - truth.mean(axis=0)) ** 2).sum(axis=1).mean())
+    return float(np.linalg.norm(vertices - truth, axis=1).mean() / scale)
 
 
 @pytest.fixture(scope="module")
-def errors(ict_model, case):
-    truth, camera, normal_map = case
-    scale = np.sqrt(((truth - truth.mean(axis=0)) ** 2).sum(axis=1).mean())
-
-    def error(vertices: np.ndarray) -> float:
-        return float(np.linalg.norm(vertices - truth, axis=1).mean() / scale)
-
-    runs = {"paper statistical": ("statistical", "paper"), "paper laplacian": ("laplacian", "paper"),
-            "paper pca": ("pca", "paper"), "tuned pca": ("pca", "tuned"), "default": ("default", "tuned")}
-    found = {"template": error(ict_model.template)}
-    for name, (method, preset) in runs.items():
-        found[name] = error(reconstruct(ict_model, normal_map, camera, method, preset=preset).vertices)
-    return found
+def errors(ict_model):
+    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as pool:
+        futures = {name: pool.submit(fit_error, *run) for name, run in RUNS.items()}
+        found = {name: future.result() for name, future in futures.items()}
+    return found | {"template": fit_error("template", "")}
 
 
-def test_paper_statistical_beats_laplacian_and_pca_at_paper_settings(errors):
+def test_paper_statistical_beats_paper_laplacian(errors):
     assert errors["paper statistical"] < errors["paper laplacian"], errors
-    assert errors["paper statistical"] < errors["paper pca"], errors
-    assert errors["paper statistical"] < 0.6 * errors["template"], errors
+    assert errors["paper statistical"] < 0.5 * errors["template"], errors
 
 
 def test_default_beats_every_method_it_was_compared_with(errors):
