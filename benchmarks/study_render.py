@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -32,20 +32,13 @@ from statfit.metrics import visible_vertices
 from statfit.model import load_model
 from statfit.synth import camera_for_view, load_delta, render_target, sample_target
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from study_register import Case  # noqa: E402  (an identity seed + an expression, seen from yaw/pitch)
+
 ROOT = Path(__file__).resolve().parents[1]
 ICT = ROOT.parent / "shared" / "data" / "ict-face"
 RESULTS_DIR = ROOT / "benchmarks" / "results"
 RESULTS = RESULTS_DIR / "study_render.json"
-
-
-@dataclass(frozen=True)
-class Case:
-    name: str
-    seed: int
-    expression: str
-    weight: float
-    yaw: float
-    pitch: float = 0.0
 
 
 CASES = (Case("jaw-open", 3, "jawOpen", 0.8, 20.0), Case("smile", 5, "mouthSmile_R", 1.0, -25.0),

@@ -80,7 +80,7 @@ PIPELINES: dict[str, tuple[Settings, ...]] = {
 # (docs/benchmarks.md §5), 3000 iterations each as in the paper. The default is the hybrid filter
 # with mode gains ∝ std (γ = 1): the lowest error over all vertices of everything tried.
 RENDER_TUNED: dict[str, Settings] = {
-    "statistical": Settings("statistical", 3000, 0.01, beta=30.0),
+    "statistical": Settings("statistical", 3000, 0.01, beta=1000.0, mode_gain=1.0),
     "laplacian": Settings("laplacian", 3000, 0.003, lam=19.0),
     "hybrid": Settings("hybrid", 3000, 0.01, beta=30.0, lam=19.0, mode_gain=1.0),
     "regularized": Settings("regularized", 3000, 0.01, beta=10.0),
