@@ -20,7 +20,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from statfit.align import Similarity
+from statfit.align import Similarity, compose
 from statfit.errors import StatfitError
 from statfit.fit import StageTimer, run_fit
 from statfit.frame import Frame
@@ -38,6 +38,7 @@ NORMAL_CONVENTIONS = ("opencv", "opengl")
 POSE_ITERATIONS = 200
 POSE_LR = 0.01
 GOOD_OVERLAP = 0.7
+MIN_COVERED_PIXELS = 16
 POSE_GAIN = 0.1
 ALIGN_SIZE = 256  # the alignment runs on the map reduced by an integer factor to about this size
 
@@ -107,18 +108,41 @@ def _centring_guess(template: torch.Tensor, faces: torch.Tensor, camera: Camera,
     """The starting point of the pose search: the identity where the template's silhouette
     overlaps the target's well (IoU ≥ ``GOOD_OVERLAP``), else a move parallel to the image plane
     (and, ``with_scale``, a scale about the centroid) that puts the template's silhouette
-    centroid on the target's (and matches their areas)."""
+    centroid on the target's (and matches their areas). A template that covers almost no pixel
+    (e.g. in metres before a camera in millimetres) is measured by its projected bounding box."""
     with torch.no_grad():
         covered = (rasterize(template, faces, camera).triangle >= 0).cpu().numpy()
-    if not covered.any():
-        raise StatfitError("the model is not in the camera's view: are the model and the camera in the same frame?")
-    if (covered & mask).sum() >= GOOD_OVERLAP * (covered | mask).sum():
-        return Similarity()
-    scale = float(np.sqrt(mask.sum() / covered.sum())) if with_scale else 1.0
-    depth = float(camera.project(template)[1].mean())
+        pixels, depths = camera.project(template.detach().double())
+    rows, cols = np.nonzero(mask)
+    target_centre = np.array([cols.mean() + 0.5, rows.mean() + 0.5])
+    if covered.sum() >= MIN_COVERED_PIXELS:
+        if (covered & mask).sum() >= GOOD_OVERLAP * (covered | mask).sum():
+            return Similarity()
+        model_rows, model_cols = np.nonzero(covered)
+        model_centre = np.array([model_cols.mean() + 0.5, model_rows.mean() + 0.5])
+        area_ratio = mask.sum() / covered.sum()
+    elif with_scale and bool((depths > 0).all()):
+        low, high = pixels.min(dim=0).values.numpy(), pixels.max(dim=0).values.numpy()
+        model_centre = (low + high) / 2
+        area_ratio = (np.ptp(cols) + 1) * (np.ptp(rows) + 1) / max(float(np.prod(high - low)), 1e-300)
+        rough = _similarity_move(template, camera, model_centre, target_centre, area_ratio, float(depths.mean()))
+        moved = torch.as_tensor(rough.apply(template.detach().double().cpu().numpy()), dtype=template.dtype,
+                                device=template.device)
+        return compose(_centring_guess(moved, faces, camera, mask, with_scale), rough)  # refine on the silhouette
+    else:
+        raise StatfitError("the model is not in the camera's view: are the model and the camera in the same frame "
+                           "and units? (--align similarity estimates a scale)")
+    return _similarity_move(template, camera, model_centre, target_centre, area_ratio if with_scale else 1.0,
+                            float(depths.mean()))
+
+
+def _similarity_move(template: torch.Tensor, camera: Camera, model_centre: np.ndarray, target_centre: np.ndarray,
+                     area_ratio: float, depth: float) -> Similarity:
+    """Scale about the centroid by sqrt(area_ratio), then move parallel to the image plane at
+    ``depth`` so that the pixel ``model_centre`` lands on ``target_centre``."""
+    scale = float(np.sqrt(area_ratio))
     K_inv = np.linalg.inv(camera.K.numpy())
-    centroids = [K_inv @ [np.nonzero(m)[1].mean() + 0.5, np.nonzero(m)[0].mean() + 0.5, 1.0] for m in (covered, mask)]
-    shift = (centroids[1] - centroids[0]) * depth
+    shift = (K_inv @ [*target_centre, 1.0] - K_inv @ [*model_centre, 1.0]) * depth
     shift[2] = 0.0
     centre = template.detach().double().mean(dim=0).cpu().numpy()
     return Similarity(scale, np.eye(3), (1 - scale) * centre + camera.rotation.numpy().T @ shift)
@@ -202,10 +226,13 @@ def _align(start: torch.Tensor, objective: NormalMapObjective, space: FitSpace, 
     The model's coefficients are fitted jointly with the pose (so that the pose does not absorb
     differences of shape), and, as a reference, alone with the pose held at ``guess``; the pose
     is kept only where it lowers the objective by ``POSE_GAIN`` or more (from one view, small
-    rotations trade off against expressions and identity)."""
+    rotations trade off against expressions and identity), or where the search had to start from
+    a rough ``guess`` (the silhouettes did not overlap)."""
     basis = (space.basis_t * space.std[:, None]).view(len(space.std), -1, 3)
     common = dict(iterations=POSE_ITERATIONS, lr=POSE_LR, start=guess, fixed_axis=view_axis, shape_basis=basis)
     moved = fit_pose(start, objective, with_scale=with_scale, **common)
+    if not (guess.scale == 1.0 and np.array_equal(guess.rotation, np.eye(3)) and not guess.translation.any()):
+        return moved.pose, moved.shape  # the silhouettes disagreed: the rough guess needs refining
     still = fit_pose(start, objective, move=False, **common)
     chosen = moved if moved.loss < (1.0 - POSE_GAIN) * still.loss else still
     return chosen.pose, chosen.shape

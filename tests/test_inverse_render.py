@@ -7,6 +7,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from statfit.align import Similarity
+from statfit.errors import StatfitError
 from statfit.frame import Frame
 from statfit.inverse_render import camera_in_frame, camera_space_normals, downsampled, reconstruct
 from statfit.io.normalmap import NormalMap
@@ -140,3 +141,18 @@ def test_downsampled_map_matches_a_render_at_the_reduced_camera(embedded_model, 
     both = coarse_mask.numpy() & expected_mask
     assert (coarse_mask.numpy() == expected_mask).mean() > 0.995
     assert np.abs(coarse.numpy()[both] - expected[both]).mean() < 0.01
+
+
+def test_similarity_alignment_takes_a_map_in_other_units(embedded_model):
+    """A map and camera in millimetres, the model in metres: `rigid` refuses, `similarity` fits.
+    From one view the scale is known only with the depth (scaling about the camera centre leaves
+    the image unchanged), so the check is the image of the fit, and a scale near 1000."""
+    shape = embedded_model.sample(np.random.default_rng(2), 1.0) * 1000.0
+    camera = camera_for_view(shape, 20.0, 0.0, SIZE)
+    normal_map = NormalMap(*render_target(shape, embedded_model.faces, camera))
+    with pytest.raises(StatfitError, match="different units"):
+        reconstruct(embedded_model, normal_map, camera, "statistical", iterations=1)
+    fit = reconstruct(embedded_model, normal_map, camera, "statistical", align="similarity", iterations=100)
+    assert 800 < fit.pose.scale < 1250
+    _, covered = render_target(fit.vertices, embedded_model.faces, camera)
+    assert (covered & normal_map.mask).sum() > 0.9 * (covered | normal_map.mask).sum()
