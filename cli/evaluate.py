@@ -60,7 +60,6 @@ def evaluate(
     Console().print(table)
 
 
-
 def _seen_vertices(vertices: np.ndarray, faces: np.ndarray, normals: Path, camera_path: Path | None) -> np.ndarray:
     normal_map = read_normal_map(normals)
     return visible_vertices(vertices, faces, camera_for_map(normal_map, camera_path, normals), normal_map.mask)

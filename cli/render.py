@@ -85,7 +85,6 @@ def render(
         start, faces = read_mesh(init)
         if faces.shape != model.faces.shape or (faces != model.faces).any():
             raise StatfitError(f"{init} does not have the model's topology")
-    target_normals = camera_space_normals(normal_map, camera, normal_space, normal_convention)
     total = sum(s.iterations for s in stages)
     started = time.perf_counter()
     record = JsonLinesLog(log)
@@ -111,7 +110,8 @@ def render(
     preview_bytes = None
     if preview is not None:
         from statfit.preview import preview_png  # matplotlib is imported only when a preview is asked for
-        preview_bytes = preview_png(target_normals, normal_map.mask, result.vertices, model.faces, camera)
+        target = camera_space_normals(normal_map, camera, normal_space, normal_convention)
+        preview_bytes = preview_png(target, normal_map.mask, result.vertices, model.faces, camera)
     write_atomic(out, mesh_bytes(result.vertices, model.faces, mesh_format(out)))
     if preview_bytes is not None:
         write_atomic(preview, preview_bytes)

@@ -5,11 +5,12 @@ The fit runs in the model's unit frame (:class:`statfit.frame.Frame`); the camer
 that frame, and a pose found by the initial alignment is folded into the camera, so the filters
 act on the model in its own orientation. Target normals are compared in camera space.
 
-Alignment (rigid / similarity): Adam on the pose jointly with the model's coefficients (weak
-prior), from the identity or, where the silhouettes overlap poorly, from a move that matches
-their centroids. The translation along the viewing axis stays fixed: from one view it trades off
-against the shape's size, and left free it drifted by most of a head radius on test cases; use
-similarity to estimate a scale.
+Alignment (rigid / similarity), on the map reduced to about 256 px: Adam on the model's
+coefficients (weak prior), once jointly with a pose and once alone; the pose is kept where it
+lowers the objective by 10%, or where the silhouettes overlapped so poorly that the search had to
+start from a rough move matching their centroids. The translation along the viewing axis stays
+fixed: from one view it trades off against the shape's size (left free, it drifted by most of a
+head radius on test cases); use similarity to estimate a scale. docs/method.md has the numbers.
 """
 from __future__ import annotations
 
@@ -30,7 +31,7 @@ from statfit.model import StatModel
 from statfit.objectives.normals import SILHOUETTE_WEIGHT, NormalMapObjective
 from statfit.pose import fit_pose
 from statfit.register import UNIT_MISMATCH_FACTOR, fit_space, resolve_device
-from statfit.render import Camera, rasterize
+from statfit.render import Camera, MeshAdjacency, rasterize
 
 ALIGNMENTS = ("none", "rigid", "similarity")
 NORMAL_SPACES = ("world", "camera")
@@ -104,8 +105,8 @@ def check_framing(template: np.ndarray, camera: Camera, mask: np.ndarray, align:
 
 
 def _centring_guess(template: torch.Tensor, faces: torch.Tensor, camera: Camera, mask: np.ndarray,
-                    with_scale: bool) -> Similarity:
-    """The starting point of the pose search: the identity where the template's silhouette
+                    with_scale: bool) -> Similarity | None:
+    """The starting point of the pose search: None (no move) where the template's silhouette
     overlaps the target's well (IoU ≥ ``GOOD_OVERLAP``), else a move parallel to the image plane
     (and, ``with_scale``, a scale about the centroid) that puts the template's silhouette
     centroid on the target's (and matches their areas). A template that covers almost no pixel
@@ -117,7 +118,7 @@ def _centring_guess(template: torch.Tensor, faces: torch.Tensor, camera: Camera,
     target_centre = np.array([cols.mean() + 0.5, rows.mean() + 0.5])
     if covered.sum() >= MIN_COVERED_PIXELS:
         if (covered & mask).sum() >= GOOD_OVERLAP * (covered | mask).sum():
-            return Similarity()
+            return None
         model_rows, model_cols = np.nonzero(covered)
         model_centre = np.array([model_cols.mean() + 0.5, model_rows.mean() + 0.5])
         area_ratio = mask.sum() / covered.sum()
@@ -128,7 +129,8 @@ def _centring_guess(template: torch.Tensor, faces: torch.Tensor, camera: Camera,
         rough = _similarity_move(template, camera, model_centre, target_centre, area_ratio, float(depths.mean()))
         moved = torch.as_tensor(rough.apply(template.detach().double().cpu().numpy()), dtype=template.dtype,
                                 device=template.device)
-        return compose(_centring_guess(moved, faces, camera, mask, with_scale), rough)  # refine on the silhouette
+        refined = _centring_guess(moved, faces, camera, mask, with_scale)  # now measured on its silhouette
+        return rough if refined is None else compose(refined, rough)
     else:
         raise StatfitError("the model is not in the camera's view: are the model and the camera in the same frame "
                            "and units? (--align similarity estimates a scale)")
@@ -177,15 +179,18 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
     faces = torch.as_tensor(model.faces, dtype=torch.long, device=torch_device)
     x0 = torch.as_tensor(frame.to_unit(start_shape), dtype=dtype, device=torch_device)
 
+    adjacency = MeshAdjacency.from_faces(faces)
     timer = timer or StageTimer(sync=torch_device.type == "cuda")
     pose = Similarity()
     if align != "none":
         with timer("alignment"):
             unit_camera = camera_in_frame(camera, frame)
             guess = _centring_guess(x0, faces, unit_camera, normal_map.mask, align == "similarity")
-            coarse = NormalMapObjective(*downsampled(target, mask, unit_camera, ALIGN_SIZE), faces, silhouette_weight)
+            coarse = NormalMapObjective(*downsampled(target, mask, unit_camera, ALIGN_SIZE), faces, silhouette_weight,
+                                        adjacency)
             pose, x0 = _align(x0, coarse, space, guess, align == "similarity", unit_camera.rotation[2].to(dtype))
-    objective = NormalMapObjective(target, mask, camera_in_frame(camera, frame, pose), faces, silhouette_weight)
+    objective = NormalMapObjective(target, mask, camera_in_frame(camera, frame, pose), faces, silhouette_weight,
+                                   adjacency)
     x, done, loss = x0, 0, {}
     for settings in stages:
         param, optimizer = build(settings, space, x)
@@ -193,9 +198,9 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
                          timer=timer, first_iteration=done)
         x, done, loss = result.vertices, done + settings.iterations, result.loss
     vertices = frame.from_unit(pose.apply(x.detach().cpu().double().numpy()))
-    world_pose = Similarity(pose.scale, pose.rotation,
-                            frame.scale * pose.translation + frame.center - pose.scale * pose.rotation @ frame.center)
-    return Reconstruction(vertices, world_pose, stages, loss, time.perf_counter() - started, dict(timer.seconds))
+    to_unit = Similarity(1.0 / frame.scale, np.eye(3), -frame.center / frame.scale)
+    from_unit = Similarity(frame.scale, np.eye(3), frame.center)
+    return Reconstruction(vertices, compose(from_unit, compose(pose, to_unit)), stages, loss, time.perf_counter() - started, dict(timer.seconds))
 
 
 def downsampled(normals: torch.Tensor, mask: torch.Tensor, camera: Camera, size: int
@@ -219,7 +224,7 @@ def downsampled(normals: torch.Tensor, mask: torch.Tensor, camera: Camera, size:
     return coarse, coarse_mask, Camera(width, height, K, camera.world_to_camera)
 
 
-def _align(start: torch.Tensor, objective: NormalMapObjective, space: FitSpace, guess: Similarity,
+def _align(start: torch.Tensor, objective: NormalMapObjective, space: FitSpace, guess: Similarity | None,
            with_scale: bool, view_axis: torch.Tensor) -> tuple[Similarity, torch.Tensor]:
     """The model → unit-frame pose and the start shape for the fit.
 
@@ -227,11 +232,11 @@ def _align(start: torch.Tensor, objective: NormalMapObjective, space: FitSpace, 
     differences of shape), and, as a reference, alone with the pose held at ``guess``; the pose
     is kept only where it lowers the objective by ``POSE_GAIN`` or more (from one view, small
     rotations trade off against expressions and identity), or where the search had to start from
-    a rough ``guess`` (the silhouettes did not overlap)."""
+    a rough ``guess`` (None: the silhouettes overlapped, no move was needed)."""
     basis = (space.basis_t * space.std[:, None]).view(len(space.std), -1, 3)
     common = dict(iterations=POSE_ITERATIONS, lr=POSE_LR, start=guess, fixed_axis=view_axis, shape_basis=basis)
     moved = fit_pose(start, objective, with_scale=with_scale, **common)
-    if not (guess.scale == 1.0 and np.array_equal(guess.rotation, np.eye(3)) and not guess.translation.any()):
+    if guess is not None:
         return moved.pose, moved.shape  # the silhouettes disagreed: the rough guess needs refining
     still = fit_pose(start, objective, move=False, **common)
     chosen = moved if moved.loss < (1.0 - POSE_GAIN) * still.loss else still

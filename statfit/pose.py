@@ -28,8 +28,8 @@ def _skew(omega: torch.Tensor) -> torch.Tensor:
 
 
 def fit_pose(vertices: torch.Tensor, loss: Loss, *, with_scale: bool = False, iterations: int = 200,
-             lr: float = 0.01, start: Similarity | None = None, fixed_axis: torch.Tensor | None = None, shape_basis: torch.Tensor | None = None,
-             shape_prior: float = 1e-3, move: bool = True) -> PoseFit:
+             lr: float = 0.01, start: Similarity | None = None, fixed_axis: torch.Tensor | None = None,
+             shape_basis: torch.Tensor | None = None, shape_prior: float = 1e-3, move: bool = True) -> PoseFit:
     """The pose y = s·R·x + t of ``vertices`` (N, 3) that minimises ``sum(loss(y).values())``.
 
     Adam on a rotation vector (exponential map), a translation and, ``with_scale``, log s; the
@@ -45,9 +45,10 @@ def fit_pose(vertices: torch.Tensor, loss: Loss, *, with_scale: bool = False, it
     centre = vertices.detach().mean(dim=0)
     start = start or Similarity()
     base = torch.as_tensor(start.rotation, dtype=dtype, device=device)
-    shift = torch.as_tensor(start.translation, dtype=dtype, device=device) + (start.scale * base - torch.eye(3, dtype=dtype, device=device)) @ centre
+    identity = torch.eye(3, dtype=dtype, device=device)
+    shift = torch.as_tensor(start.translation, dtype=dtype, device=device) + (start.scale * base - identity) @ centre
     omega = torch.zeros(3, dtype=dtype, device=device, requires_grad=True)
-    free = torch.eye(3, dtype=dtype, device=device)
+    free = identity
     if fixed_axis is not None:
         axis = fixed_axis.to(dtype=dtype, device=device)
         free = free - torch.outer(axis, axis)

@@ -9,9 +9,9 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (the backend must be chosen first)
 import numpy as np  # noqa: E402
-import torch  # noqa: E402
 
-from statfit.render import Camera, normal_image, rasterize  # noqa: E402
+from statfit.render import Camera  # noqa: E402
+from statfit.synth import render_target  # noqa: E402
 
 SIDE_VIEW_DEG = 70.0
 
@@ -42,21 +42,13 @@ def side_camera(camera: Camera, vertices: np.ndarray, degrees: float = SIDE_VIEW
     return Camera(camera.width, camera.height, camera.K, pose)
 
 
-def camera_normals(vertices: np.ndarray, faces: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """Camera-space unit normals (H, W, 3) and coverage (H, W) of a mesh, without antialiasing."""
-    points = torch.as_tensor(vertices, dtype=torch.float64)
-    face_ids = torch.as_tensor(faces, dtype=torch.long)
-    fragments = rasterize(points, face_ids, camera)
-    return normal_image(points, face_ids, fragments, camera).numpy(), (fragments.triangle >= 0).numpy()
-
-
 def preview_png(target: np.ndarray, target_mask: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
                 camera: Camera) -> bytes:
     """The preview as PNG bytes. target: camera-space (OpenCV) normals (H, W, 3) and mask (H, W)."""
-    fitted, covered = camera_normals(vertices, faces, camera)
+    fitted, covered = render_target(vertices, faces, camera, space="camera")
     both = covered & target_mask
     error = np.where(both, angular_error(fitted, target), np.nan)
-    side, side_mask = camera_normals(vertices, faces, side_camera(camera, vertices))
+    side, side_mask = render_target(vertices, faces, side_camera(camera, vertices), space="camera")
     figure, axes = plt.subplots(1, 4, figsize=(16, 4.4), constrained_layout=True)
     axes[0].imshow(normals_to_rgb(target, target_mask))
     axes[0].set_title("target normals")

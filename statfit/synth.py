@@ -2,6 +2,8 @@
 partial scan or as a normal map."""
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
 import torch
 import trimesh
@@ -88,11 +90,13 @@ def camera_for_view(vertices: np.ndarray, yaw_deg: float = 20.0, pitch_deg: floa
     return Camera.look_at(eye, centre, [0.0, 1.0, 0.0], fov_deg, size, size)
 
 
-def render_target(vertices: np.ndarray, faces: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """World-space unit normals (H, W, 3) and the coverage mask (H, W) bool of a mesh, as a
-    normal map without antialiasing (every foreground pixel holds one surface's normal)."""
+def render_target(vertices: np.ndarray, faces: np.ndarray, camera: Camera,
+                  space: Literal["world", "camera"] = "world") -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals (H, W, 3) float32, in world or camera (OpenCV) axes, and the coverage mask
+    (H, W) bool of a mesh: a normal map without antialiasing (every foreground pixel holds one
+    surface's normal)."""
     points = torch.as_tensor(vertices, dtype=torch.float64)
     face_ids = torch.as_tensor(faces, dtype=torch.long)
     fragments = rasterize(points, face_ids, camera)
-    normals = normal_image(points, face_ids, fragments, camera, space="world")
+    normals = normal_image(points, face_ids, fragments, camera, space=space)
     return normals.numpy().astype(np.float32), (fragments.triangle >= 0).numpy()

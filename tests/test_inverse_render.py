@@ -43,8 +43,7 @@ def test_world_normals_become_camera_normals(embedded_model, scene):
     world = NormalMap(normals, mask)
     local = camera_space_normals(world, camera)
     # Independent expectation: the rasteriser's own camera-space normals of the same mesh.
-    from statfit.preview import camera_normals
-    expected, covered = camera_normals(shape, embedded_model.faces, camera)
+    expected, covered = render_target(shape, embedded_model.faces, camera, space="camera")
     np.testing.assert_array_equal(covered, mask)
     np.testing.assert_allclose(local[mask], expected[mask], atol=1e-5)
     flipped = NormalMap((expected * [1, -1, -1]).astype(np.float32), mask)

@@ -11,8 +11,7 @@ from __future__ import annotations
 
 import torch
 
-from statfit.render import (Camera, MeshAdjacency, interpolate_fragments, rasterize, silhouette_crossings,
-                            vertex_normals)
+from statfit.render import Camera, MeshAdjacency, fragment_normals, rasterize, silhouette_crossings
 
 SILHOUETTE_WEIGHT = 1.0
 
@@ -23,8 +22,8 @@ class NormalMapObjective:
     def __init__(self, normals: torch.Tensor, mask: torch.Tensor, camera: Camera, faces: torch.Tensor,
                  silhouette_weight: float = SILHOUETTE_WEIGHT, adjacency: MeshAdjacency | None = None):
         """normals: (H, W, 3) target unit normals in camera space; mask: (H, W) bool target
-        coverage; faces: (F, 3) long on the normals' device."""
-        self.normals = normals
+        coverage; faces: (F, 3) long on the normals' device; adjacency: ``MeshAdjacency.from_faces(faces)``,
+        pass it to share it between objectives."""
         self.mask = mask.to(normals.dtype)
         # Per-pixel lookups of the target at the covered pixels: normals (3, H·W), mask (H·W,).
         self._normals_by_pixel = normals.reshape(-1, 3).T.contiguous()
@@ -41,8 +40,7 @@ class NormalMapObjective:
     def __call__(self, vertices: torch.Tensor) -> dict[str, torch.Tensor]:
         fragments = rasterize(vertices, self.faces, self.camera)
         # The normal term is evaluated on the covered pixels only (C, M), never on the whole image.
-        rotated = vertex_normals(vertices, self.faces) @ self.camera.rotation.to(vertices).T
-        normals = interpolate_fragments(rotated, self.faces, fragments, normalize=True)          # (3, M)
+        normals = fragment_normals(vertices, self.faces, fragments, self.camera)                 # (3, M)
         target = self._normals_by_pixel.index_select(1, fragments.pixel)
         both = self._mask_by_pixel.index_select(0, fragments.pixel)
         normal = ((normals - target).abs().sum(dim=0) * both).sum() / both.sum().clamp_min(1.0)

@@ -7,8 +7,8 @@ gradients at silhouettes, ``render_normals`` for the whole chain (normal map and
 from statfit.render.silhouette import EdgeCrossings, MeshAdjacency, antialias, silhouette_crossings
 from statfit.render.camera import Camera
 from statfit.render.raster import Fragments, interpolate, interpolate_fragments, rasterize
-from statfit.render.shading import normal_image, render_normals, vertex_normals
+from statfit.render.shading import fragment_normals, normal_image, render_normals, vertex_normals
 
 __all__ = ["Camera", "EdgeCrossings", "Fragments", "MeshAdjacency", "antialias", "interpolate",
-           "interpolate_fragments", "normal_image", "rasterize", "render_normals", "silhouette_crossings",
+           "fragment_normals", "interpolate_fragments", "normal_image", "rasterize", "render_normals", "silhouette_crossings",
            "vertex_normals"]

@@ -45,9 +45,16 @@ def normal_image(vertices: torch.Tensor, faces: torch.Tensor, fragments: Fragmen
                  space: Literal["camera", "world"] = "camera") -> torch.Tensor:
     """Unit normals (H, W, 3) interpolated from the vertex normals and renormalised per pixel, zero
     on the background (not antialiased); in camera (OpenCV axes) or world coordinates."""
+    return fragments.to_image(fragment_normals(vertices, faces, fragments, camera, space=space))
+
+
+def fragment_normals(vertices: torch.Tensor, faces: torch.Tensor, fragments: Fragments, camera: Camera, *,
+                     space: Literal["camera", "world"] = "camera") -> torch.Tensor:
+    """The unit normals of :func:`normal_image` at the covered pixels only, (3, M) in
+    ``fragments.pixel`` order; differentiable w.r.t. ``vertices``."""
     if space not in ("camera", "world"):
         raise StatfitError(f"normal space must be 'camera' or 'world', got {space!r}")
     normals = vertex_normals(vertices, faces).T                       # (3, N)
     if space == "camera":
         normals = camera.rotation.to(normals) @ normals
-    return fragments.to_image(interpolate_fragments(normals.T, faces, fragments, normalize=True))
+    return interpolate_fragments(normals.T, faces, fragments, normalize=True)
