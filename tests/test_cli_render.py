@@ -160,7 +160,24 @@ BAD_RENDER_INPUTS = {
                                              str(_camera(c, t / "c.json", world_to_camera=_far(c)))],
     "eval --camera without --normals": lambda t, e, c: ["eval", str(e), str(e), "--camera", str(c)],
     "synth normals of zero size": lambda t, e, c: ["synth", "normals", "--size", "0", "--out", str(t / "fit.exr")],
+    "empty normal map": lambda t, e, c: ["render", str(_empty(t / "empty.exr"))],
+    "missing mask": lambda t, e, c: ["render", str(e), "--mask", str(t / "nope.png")],
+    "empty mask": lambda t, e, c: ["render", str(e), "--mask", str(_empty(t / "empty.png"))],
+    "corrupt mask": lambda t, e, c: ["render", str(e), "--mask", str(corrupt(t / "bad.png"))],
+    "missing camera": lambda t, e, c: ["render", str(e), "--camera", str(t / "nope.json")],
+    "empty camera": lambda t, e, c: ["render", str(e), "--camera", str(_empty(t / "empty.json"))],
+    "missing init": lambda t, e, c: ["render", str(e), "--init", str(t / "nope.ply")],
+    "empty init": lambda t, e, c: ["render", str(e), "--init", str(_empty(t / "empty.ply"))],
+    "eval with a missing normal map": lambda t, e, c: ["eval", str(c.parent / "gt.ply"), str(c.parent / "gt.ply"),
+                                                       "--normals", str(t / "nope.exr")],
+    "synth normals with a missing delta file": lambda t, e, c: ["synth", "normals", "--out", str(t / "fit.exr"),
+                                                                "--delta", str(t / "none.npz"), "--delta-name", "jawOpen"],
 }
+
+
+def _empty(path: Path) -> Path:
+    path.write_bytes(b"")
+    return path
 
 
 def _tetrahedron(path: Path) -> Path:
