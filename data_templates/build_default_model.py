@@ -26,11 +26,9 @@ Run ``python data_templates/build_default_model.py [--out PATH]`` to regenerate.
 from __future__ import annotations
 
 import argparse
-import io
 import itertools
 import os
 import time
-import zipfile
 from pathlib import Path
 
 # The matrices are small: one BLAS thread is fastest (multi-threaded OpenBLAS stalls on a busy
@@ -39,6 +37,10 @@ for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_variable, "1")
 
 import numpy as np  # noqa: E402  (after the thread settings, which numpy reads on import)
+
+from statfit.io.mesh import write_atomic  # noqa: E402
+from statfit.io.npz import npz_bytes  # noqa: E402
+from statfit.pca import principal_components  # noqa: E402
 
 SEED = 5023
 NUM_SHAPES = 300
@@ -233,17 +235,10 @@ def sample_population(u: np.ndarray, rng: np.random.Generator, count: int) -> np
 
 
 def pca(shapes: np.ndarray, num_modes: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Mean (N, 3), scaled directions (N, 3, K) and per-mode variance of all modes.
-
-    Each direction's sign is fixed so that its largest-magnitude entry is positive.
-    """
-    mean = shapes.mean(axis=0)
-    centred = (shapes - mean).reshape(len(shapes), -1).T  # (3N, S): tall, so the SVD is cheap
-    u, s, _ = np.linalg.svd(centred, full_matrices=False)
-    variance = s**2 / (len(shapes) - 1)
-    dirs = u[:, :num_modes] * np.sqrt(variance[:num_modes])
-    dirs *= np.sign(dirs[np.abs(dirs).argmax(axis=0), np.arange(num_modes)])
-    return mean, dirs.reshape(-1, 3, num_modes), variance
+    """Mean (N, 3), scaled directions (N, 3, K) and the cumulative variance explained, (K,)."""
+    components = principal_components(shapes.reshape(len(shapes), -1), num_modes, randomized=False)
+    return (components.mean.reshape(-1, 3), components.scaled_directions.T.reshape(-1, 3, num_modes),
+            components.variance_explained())
 
 
 def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -291,23 +286,12 @@ def face_region(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.flatnonzero(inside & facing & (z > 0.03)).astype(np.int32)
 
 
-def save_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    """``np.savez_compressed`` with fixed zip timestamps, so the file's bytes are reproducible."""
-    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as archive:
-        for name, array in arrays.items():
-            buffer = io.BytesIO()
-            np.lib.format.write_array(buffer, np.ascontiguousarray(array), allow_pickle=False)
-            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-            info.compress_type = zipfile.ZIP_DEFLATED
-            archive.writestr(info, buffer.getvalue())
-
-
 def build_model() -> tuple[dict[str, np.ndarray], np.ndarray]:
     """All arrays of the model file, and the cumulative variance explained by the kept modes."""
     sphere, faces = geodesic_sphere(FREQUENCY)
     u = focus_front(sphere, FRONT_FOCUS)
     shapes = sample_population(u, np.random.default_rng(SEED), NUM_SHAPES)
-    mean, shapedirs, variance = pca(shapes, NUM_MODES)
+    mean, shapedirs, explained = pca(shapes, NUM_MODES)
     check_no_flips(shapes, mean, faces)
     marks = landmarks(mean)
     arrays = {
@@ -318,7 +302,7 @@ def build_model() -> tuple[dict[str, np.ndarray], np.ndarray]:
         "landmark_names": np.array(list(marks)),
         "region_face": face_region(mean, faces),
     }
-    return arrays, np.cumsum(variance)[:NUM_MODES] / variance.sum()
+    return arrays, explained
 
 
 def main() -> None:
@@ -328,7 +312,7 @@ def main() -> None:
     args = parser.parse_args()
     start = time.perf_counter()
     arrays, explained = build_model()
-    save_npz(args.out, arrays)
+    write_atomic(args.out, npz_bytes(arrays))
     n, _, k = arrays["shapedirs"].shape
     print(f"{n} vertices, {len(arrays['faces'])} faces, {k} modes explaining "
           f"{100 * explained[-1]:.2f}% of the variance "
