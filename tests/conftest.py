@@ -1,7 +1,10 @@
 """Shared fixtures: the embedded model, the real ICT model (../shared), small random problems."""
 from __future__ import annotations
 
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+from typing import Any, Callable
 
 import numpy as np
 import pytest
@@ -25,10 +28,13 @@ def ict_model():
     return load_model(path)
 
 
-@pytest.fixture(scope="session")
-def ict_expressions():
-    with np.load(ICT_DIR / "ict_face_expressions.npz") as data:
-        return [str(n) for n in data["names"]], data["deltas"].astype(np.float64)
+def run_two_at_a_time(job: Callable[..., Any], arguments: dict[str, tuple]) -> dict[str, Any]:
+    """``{name: job(*args)}``, two jobs at a time in fresh processes (spawned: no torch state
+    shared with the test process). Long single-threaded fits gain little from a second thread, so
+    this halves the wall time on a 2-core machine; ``job`` sets its own thread count."""
+    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as pool:
+        futures = {name: pool.submit(job, *args) for name, args in arguments.items()}
+        return {name: future.result() for name, future in futures.items()}
 
 
 @pytest.fixture

@@ -8,14 +8,10 @@ cases with large expressions (on small expressions a converged pca fit is as goo
 """
 from __future__ import annotations
 
-from functools import lru_cache
-
 import numpy as np
 import pytest
 
-from statfit.metrics import evaluate, observed_vertices
-from statfit.register import register
-from statfit.synth import sample_target, scan_from_view
+from conftest import ICT_DIR, run_two_at_a_time
 
 pytestmark = pytest.mark.slow
 
@@ -25,27 +21,36 @@ CASES = {
     "brow-up": (23, "browInnerUp_L", 0.9, -40.0, 0.0),
     "jaw-open": (3, "jawOpen", 1.0, 30.0, 0.0),
 }
+TUNED = ("default", "statistical", "hybrid", "laplacian", "pca", "regularized", "none")
+# (case, method, preset) of every fit the tests below compare.
+FITS = ([(case, method, "paper") for case in ("smile", "brow-up") for method in ("statistical", "laplacian", "regularized")]
+        + [("jaw-open", method, "paper") for method in ("statistical", "regularized")]
+        + [("jaw-open", method, "tuned") for method in TUNED])
+
+
+def fit_report(case: str, method: str, preset: str) -> dict:
+    """Error report of one registration against the ground truth (runs in a worker process)."""
+    import torch
+
+    from statfit.metrics import evaluate, observed_vertices
+    from statfit.model import load_model
+    from statfit.register import register
+    from statfit.synth import load_delta, sample_target, scan_from_view
+
+    torch.set_num_threads(1)
+    model = load_model(ICT_DIR / "ict_face_identity.npz")
+    seed, expression, weight, yaw, pitch = CASES[case]
+    rng = np.random.default_rng(seed)
+    target = sample_target(model, rng, 1.0, load_delta(str(ICT_DIR / "ict_face_expressions.npz"), expression), weight)
+    points = scan_from_view(target, model.faces, rng, 4300, yaw, pitch)
+    result = register(model, points, method, preset=preset)
+    return evaluate(result.vertices, target, model.faces, observed_vertices(target, points))
 
 
 @pytest.fixture(scope="module")
-def fit_case(ict_model, ict_expressions):
-    names, deltas = ict_expressions
-
-    @lru_cache(maxsize=None)
-    def scan(case: str):
-        seed, expression, weight, yaw, pitch = CASES[case]
-        rng = np.random.default_rng(seed)
-        target = sample_target(ict_model, rng, 1.0, deltas[..., names.index(expression)], weight)
-        points = scan_from_view(target, ict_model.faces, rng, 4300, yaw, pitch)
-        return target, points, observed_vertices(target, points)
-
-    @lru_cache(maxsize=None)
-    def run(case: str, method: str, preset: str) -> dict:
-        target, points, observed = scan(case)
-        result = register(ict_model, points, method, preset=preset)
-        return evaluate(result.vertices, target, ict_model.faces, observed)
-
-    return run
+def fit_case(ict_model):
+    reports = run_two_at_a_time(fit_report, {fit: fit for fit in FITS})
+    return lambda case, method, preset: reports[(case, method, preset)]
 
 
 @pytest.mark.parametrize("case", ["smile", "brow-up"])

@@ -7,13 +7,10 @@ second thread, so this halves the wall time on a 2-core machine.
 """
 from __future__ import annotations
 
-import multiprocessing
-from concurrent.futures import ProcessPoolExecutor
-
 import numpy as np
 import pytest
 
-from conftest import ICT_DIR
+from conftest import ICT_DIR, run_two_at_a_time
 
 pytestmark = pytest.mark.slow
 
@@ -49,10 +46,7 @@ def _relative_error(vertices: np.ndarray, truth: np.ndarray) -> float:
 
 @pytest.fixture(scope="module")
 def errors(ict_model):
-    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as pool:
-        futures = {name: pool.submit(fit_error, *run) for name, run in RUNS.items()}
-        found = {name: future.result() for name, future in futures.items()}
-    return found | {"template": fit_error("template", "")}
+    return run_two_at_a_time(fit_error, RUNS) | {"template": fit_error("template", "")}
 
 
 def test_paper_statistical_beats_paper_laplacian(errors):
