@@ -1,0 +1,159 @@
+"""Texture inpainting: fit all pixels of an image to its visible pixels (L1) through a gradient
+filter, so the holes are filled by what the filter spreads into them (docs/method.md, "Texture
+inpainting").
+
+The image is the "vertex" array x (H·W, C); ``FilteredVertices``/``PCACoefficients``, the filters,
+UniformAdam and ``run_fit`` are the mesh fit's own. The hybrid filter's Laplacian is the pixel grid's
+(:mod:`statfit.texture.grid`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+import torch
+
+from statfit.errors import StatfitError
+from statfit.fit import Progress, run_fit
+from statfit.methods import FitSpace, Settings, build
+from statfit.texture.grid import grid_laplacian
+from statfit.texture.model import TextureModel
+
+TEXTURE_METHODS = ("hybrid", "statistical", "laplacian", "pca", "none")
+MODEL_METHODS = ("hybrid", "statistical", "pca")
+
+# Defaults measured on the generated face textures (docs/method.md, "Texture inpainting").
+INPAINT_DEFAULTS: dict[str, Settings] = {
+    "hybrid": Settings("hybrid", 300, 0.01, beta=30.0, lam=19.0),
+    "statistical": Settings("statistical", 300, 0.01, beta=30.0),
+    "laplacian": Settings("laplacian", 300, 0.01, lam=99.0),
+    "pca": Settings("pca", 300, 0.05),
+    "none": Settings("none", 300, 0.01),
+}
+# Pixel noise (standard deviation, in [0, 1] colour units) assumed by the model-only reconstruction.
+PROJECTION_NOISE = 0.02
+
+
+@dataclass
+class Inpainting:
+    """result (H, W, C): the input on visible pixels, the fit in the holes; model_only (H, W, C):
+    the model's reconstruction from the visible pixels (None without a model); the settings used,
+    the final loss terms and the fit's wall time."""
+
+    result: np.ndarray
+    model_only: np.ndarray | None
+    settings: Settings
+    loss: dict[str, float]
+    seconds: float
+
+
+class VisibleL1:
+    """Mean absolute difference to ``target`` over the visible entries (the fit's objective)."""
+
+    def __init__(self, target: torch.Tensor, visible: torch.Tensor):
+        self.index = visible.nonzero().squeeze(1)
+        self.target = target[self.index]
+
+    def prepare(self, vertices: torch.Tensor, iteration: int) -> None:
+        pass
+
+    def __call__(self, vertices: torch.Tensor) -> dict[str, torch.Tensor]:
+        return {"data": (vertices[self.index] - self.target).abs().mean()}
+
+
+def inpaint_settings(method: str, iterations: int | None = None, lr: float | None = None, beta: float | None = None,
+                     lam: float | None = None) -> Settings:
+    """The default settings of ``method`` with the given values replaced (validated)."""
+    if method not in TEXTURE_METHODS:
+        raise StatfitError(f"unknown method {method!r}; choose one of {', '.join(TEXTURE_METHODS)}")
+    if iterations is not None and iterations < 1:
+        raise StatfitError("--iterations must be at least 1")
+    if lr is not None and not lr > 0:
+        raise StatfitError("--lr must be positive")
+    if any(v is not None and not v >= 0 for v in (beta, lam)):
+        raise StatfitError("--beta and --lam must be at least 0")
+    changes = {k: v for k, v in dict(iterations=iterations, lr=lr, beta=beta, lam=lam).items() if v is not None}
+    return replace(INPAINT_DEFAULTS[method], **changes)
+
+
+def check_inputs(image: np.ndarray, visible: np.ndarray, model: TextureModel | None, method: str,
+                 charts: np.ndarray | None = None) -> None:
+    """Refuse inputs the fit cannot use, with a message naming the problem."""
+    if image.ndim != 3 or image.shape[-1] not in (1, 3, 4):
+        raise StatfitError(f"the image must have shape (H, W, C) with C = 1, 3 or 4, got {image.shape}")
+    if not np.isfinite(image).all():
+        raise StatfitError("the image has NaN or infinite values")
+    if visible.shape != image.shape[:2]:
+        raise StatfitError(f"the mask is {visible.shape[1]}×{visible.shape[0]} but the image is "
+                           f"{image.shape[1]}×{image.shape[0]}")
+    if not visible.any():
+        raise StatfitError("the mask has no visible pixel (white = visible; --mask-invert swaps)")
+    if charts is not None and charts.shape != image.shape[:2]:
+        raise StatfitError(f"the chart image is {charts.shape[1]}×{charts.shape[0]} but the image is "
+                           f"{image.shape[1]}×{image.shape[0]}")
+    if model is None:
+        if method in MODEL_METHODS:
+            raise StatfitError(f"method {method!r} needs a texture model (--model)")
+        return
+    if model.size != image.shape[:2]:
+        raise StatfitError(f"the model is {model.width}×{model.height} but the image is {image.shape[1]}×"
+                           f"{image.shape[0]}; pass --resize to fit at the model's size")
+    if model.channels != image.shape[-1]:
+        raise StatfitError(f"the model has {model.channels} channel(s) but the image has {image.shape[-1]}")
+
+
+def model_reconstruction(model: TextureModel, image: np.ndarray, visible: np.ndarray,
+                         device: str | torch.device = "cpu") -> np.ndarray:
+    """The model's MAP texture (H, W, C) given the visible pixels: coefficients c ~ N(0, I), pixel
+    noise ``PROJECTION_NOISE``; ``(BᵥᵀBᵥ + σ²I) c = Bᵥᵀ(y − x̄)`` with B = U diag(std)."""
+    basis_t = torch.as_tensor(model.basis_t, device=device)
+    std = torch.as_tensor(model.std, dtype=torch.float64, device=device)
+    mean = torch.as_tensor(model.mean.reshape(-1), device=device)
+    weight = torch.as_tensor(np.repeat(visible.reshape(-1), model.channels), dtype=basis_t.dtype, device=device)
+    residual = torch.as_tensor(image.reshape(-1), dtype=basis_t.dtype, device=device) - mean
+    masked = basis_t * weight
+    gram = (masked @ basis_t.T).double() * std[:, None] * std[None, :]
+    rhs = (masked @ residual).double() * std
+    coeffs = torch.linalg.solve(gram + PROJECTION_NOISE**2 * torch.eye(len(std), dtype=torch.float64, device=device), rhs)
+    flat = mean + (coeffs * std).to(basis_t.dtype) @ basis_t
+    return flat.reshape(image.shape).cpu().numpy()
+
+
+def inpaint(image: np.ndarray, visible: np.ndarray, method: str | None = None, model: TextureModel | None = None, *,
+            settings: Settings | None = None, charts: np.ndarray | None = None, device: str | torch.device = "cpu",
+            on_record: Progress | None = None) -> Inpainting:
+    """Fill the holes (``visible`` False) of ``image`` (H, W, C) in [0, 1].
+
+    ``method``: hybrid (default with a model), statistical, pca, laplacian (default without), none;
+    ``settings`` override ``INPAINT_DEFAULTS``; ``charts`` (H, W) UV-chart labels restrict the
+    Laplacian (:func:`statfit.texture.grid.grid_laplacian`). The fit starts from the model's
+    reconstruction, or without a model from the visible pixels' mean colour.
+    """
+    method = method or (settings.method if settings else ("hybrid" if model is not None else "laplacian"))
+    settings = settings or inpaint_settings(method)
+    if settings.method != method:
+        raise StatfitError(f"settings are for {settings.method!r}, not {method!r}")
+    image = np.asarray(image, dtype=np.float32)
+    visible = np.asarray(visible, dtype=bool)
+    check_inputs(image, visible, model, method, charts)
+    device = torch.device(device)
+    height, width, channels = image.shape
+    target = torch.as_tensor(image.reshape(-1, channels), device=device)
+    if model is not None:
+        model_only = model_reconstruction(model, image, visible, device)
+        space = FitSpace(torch.as_tensor(model.mean, device=device), torch.as_tensor(model.basis_t, device=device),
+                         torch.as_tensor(model.std, dtype=torch.float32, device=device), None)
+        x0 = torch.as_tensor(model_only.reshape(-1, channels), device=device)
+    else:
+        model_only = None
+        x0 = target[torch.as_tensor(visible.reshape(-1), device=device)].mean(dim=0).expand_as(target).contiguous()
+        empty = torch.zeros((0, target.numel()), device=device)
+        space = FitSpace(x0, empty, torch.zeros(0, device=device), None)
+    if method in ("laplacian", "hybrid"):
+        space = replace(space, laplacian=grid_laplacian(height, width, charts))
+    param, optimizer = build(settings, space, x0)
+    objective = VisibleL1(target, torch.as_tensor(visible.reshape(-1), device=device))
+    fit = run_fit(param, optimizer, objective, settings.iterations, on_record=on_record)
+    filled = fit.vertices.detach().reshape(image.shape).cpu().numpy()
+    result = np.where(visible[..., None], image, filled).astype(np.float32)
+    return Inpainting(result, model_only, settings, fit.loss, fit.seconds)
