@@ -99,7 +99,7 @@ def load_model(path: str | Path, k: int | None = None) -> StatModel:
     """Load and validate a model npz; keep the first ``k`` modes when given."""
     path = Path(path)
     arrays = read_npz(path)
-    if str(arrays.get("kind", "")) == "texture":
+    if np.asarray(arrays.get("kind", "")).reshape(-1).tolist() == ["texture"]:
         raise StatfitError(f"{path} is a texture model (for `statfit inpaint --model`), not a mesh model")
     missing = [key for key in ("v_template", "faces", "shapedirs") if key not in arrays]
     if missing:

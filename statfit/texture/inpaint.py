@@ -18,6 +18,7 @@ from statfit.fit import Progress, run_fit
 from statfit.methods import FitSpace, Settings, build
 from statfit.texture.grid import grid_laplacian
 from statfit.texture.model import TextureModel
+from statfit.texture.resample import resize_image, resize_labels, resize_mask
 
 TEXTURE_METHODS = ("hybrid", "statistical", "laplacian", "pca", "none")
 MODEL_METHODS = ("hybrid", "statistical", "pca")
@@ -26,10 +27,11 @@ MODEL_METHODS = ("hybrid", "statistical", "pca")
 INPAINT_DEFAULTS: dict[str, Settings] = {
     "hybrid": Settings("hybrid", 300, 0.01, beta=30.0, lam=19.0),
     "statistical": Settings("statistical", 300, 0.01, beta=30.0),
-    "laplacian": Settings("laplacian", 300, 0.01, lam=99.0),
+    "laplacian": Settings("laplacian", 300, 0.01, lam=19.0),
     "pca": Settings("pca", 300, 0.05),
     "none": Settings("none", 300, 0.01),
 }
+STARTS = ("mean", "reconstruction")
 # Pixel noise (standard deviation, in [0, 1] colour units) assumed by the model-only reconstruction.
 PROJECTION_NOISE = 0.02
 
@@ -76,21 +78,22 @@ def inpaint_settings(method: str, iterations: int | None = None, lr: float | Non
     return replace(INPAINT_DEFAULTS[method], **changes)
 
 
-def check_inputs(image: np.ndarray, visible: np.ndarray, model: TextureModel | None, method: str,
-                 charts: np.ndarray | None = None) -> None:
-    """Refuse inputs the fit cannot use, with a message naming the problem."""
+def check_inputs(image: np.ndarray, visible: np.ndarray, charts: np.ndarray | None = None) -> None:
+    """Refuse an image, mask or chart image the fit cannot use, with a message naming the problem."""
     if image.ndim != 3 or image.shape[-1] not in (1, 3, 4):
         raise StatfitError(f"the image must have shape (H, W, C) with C = 1, 3 or 4, got {image.shape}")
     if not np.isfinite(image).all():
         raise StatfitError("the image has NaN or infinite values")
-    if visible.shape != image.shape[:2]:
-        raise StatfitError(f"the mask is {visible.shape[1]}×{visible.shape[0]} but the image is "
-                           f"{image.shape[1]}×{image.shape[0]}")
+    for name, other in (("mask", visible), ("chart image", charts)):
+        if other is not None and other.shape != image.shape[:2]:
+            raise StatfitError(f"the {name} is {other.shape[1]}×{other.shape[0]} but the image is "
+                               f"{image.shape[1]}×{image.shape[0]}")
     if not visible.any():
         raise StatfitError("the mask has no visible pixel (white = visible; --mask-invert swaps)")
-    if charts is not None and charts.shape != image.shape[:2]:
-        raise StatfitError(f"the chart image is {charts.shape[1]}×{charts.shape[0]} but the image is "
-                           f"{image.shape[1]}×{image.shape[0]}")
+
+
+def check_model(model: TextureModel | None, image: np.ndarray, method: str) -> None:
+    """Refuse a missing model for a model method, or a model of another size or channel count."""
     if model is None:
         if method in MODEL_METHODS:
             raise StatfitError(f"method {method!r} needs a texture model (--model)")
@@ -120,14 +123,17 @@ def model_reconstruction(model: TextureModel, image: np.ndarray, visible: np.nda
 
 
 def inpaint(image: np.ndarray, visible: np.ndarray, method: str | None = None, model: TextureModel | None = None, *,
-            settings: Settings | None = None, charts: np.ndarray | None = None, device: str | torch.device = "cpu",
-            on_record: Progress | None = None) -> Inpainting:
+            settings: Settings | None = None, start: str = "mean", charts: np.ndarray | None = None,
+            resize: bool = False, device: str | torch.device = "cpu", on_record: Progress | None = None) -> Inpainting:
     """Fill the holes (``visible`` False) of ``image`` (H, W, C) in [0, 1].
 
     ``method``: hybrid (default with a model), statistical, pca, laplacian (default without), none;
     ``settings`` override ``INPAINT_DEFAULTS``; ``charts`` (H, W) UV-chart labels restrict the
-    Laplacian (:func:`statfit.texture.grid.grid_laplacian`). The fit starts from the model's
-    reconstruction, or without a model from the visible pixels' mean colour.
+    Laplacian (:func:`statfit.texture.grid.grid_laplacian`). ``start``: the fit starts from the
+    model's mean (``mean``, measured best) or its reconstruction from the visible pixels
+    (``reconstruction``); without a model, from the visible pixels' mean colour. With ``resize``, an
+    image of another size than the model's is resampled to it for the fit, and the filled holes
+    are resampled back (the result has the input's size; its visible pixels stay the input's).
     """
     method = method or (settings.method if settings else ("hybrid" if model is not None else "laplacian"))
     settings = settings or inpaint_settings(method)
@@ -135,7 +141,17 @@ def inpaint(image: np.ndarray, visible: np.ndarray, method: str | None = None, m
         raise StatfitError(f"settings are for {settings.method!r}, not {method!r}")
     image = np.asarray(image, dtype=np.float32)
     visible = np.asarray(visible, dtype=bool)
-    check_inputs(image, visible, model, method, charts)
+    check_inputs(image, visible, charts)
+    if start not in STARTS:
+        raise StatfitError(f"unknown start {start!r}; choose one of {', '.join(STARTS)}")
+    if resize and model is not None and model.size != image.shape[:2]:
+        fitted = inpaint(resize_image(image, model.size), resize_mask(visible, model.size), method, model,
+                         settings=settings, start=start, charts=None if charts is None else resize_labels(charts, model.size),
+                         device=device, on_record=on_record)
+        filled = resize_image(fitted.result, image.shape[:2])
+        return replace(fitted, result=np.where(visible[..., None], image, filled),
+                       model_only=resize_image(fitted.model_only, image.shape[:2]))
+    check_model(model, image, method)
     device = torch.device(device)
     height, width, channels = image.shape
     target = torch.as_tensor(image.reshape(-1, channels), device=device)
@@ -143,7 +159,8 @@ def inpaint(image: np.ndarray, visible: np.ndarray, method: str | None = None, m
         model_only = model_reconstruction(model, image, visible, device)
         space = FitSpace(torch.as_tensor(model.mean, device=device), torch.as_tensor(model.basis_t, device=device),
                          torch.as_tensor(model.std, dtype=torch.float32, device=device), None)
-        x0 = torch.as_tensor(model_only.reshape(-1, channels), device=device)
+        x0 = torch.as_tensor((model_only if start == "reconstruction" else model.mean).reshape(-1, channels),
+                             device=device)
     else:
         model_only = None
         x0 = target[torch.as_tensor(visible.reshape(-1), device=device)].mean(dim=0).expand_as(target).contiguous()

@@ -7,6 +7,7 @@ topology. Flattened, entry ``p·C + c`` is channel c of pixel p, the order of ``
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable
@@ -18,6 +19,7 @@ from statfit.io.mesh import write_atomic
 from statfit.io.npz import npz_bytes, read_npz
 from statfit.model import _float_array
 from statfit.pca import principal_components
+from statfit.register import StatfitWarning
 from statfit.texture.resample import resize_image
 
 # Modes whose variance is below this fraction of the first's are dropped on loading (the Gram
@@ -74,7 +76,8 @@ class TextureModel:
 def texture_model_from_arrays(v_template: np.ndarray, shapedirs: np.ndarray, image_size: np.ndarray,
                               source: str = "<arrays>") -> TextureModel:
     """Validate contract arrays and derive the orthonormal basis from the Gram matrix of
-    ``shapedirs`` (K × K, formed blockwise in float64: cheap for the tall matrices of textures)."""
+    ``shapedirs`` (K × K, formed blockwise in float64: cheap for the tall matrices of textures).
+    Each direction's sign is fixed as in :func:`statfit.pca.principal_components`."""
     size = np.asarray(image_size).reshape(-1)
     if size.size != 2 or not np.issubdtype(size.dtype, np.integer) or (size < 1).any():
         raise StatfitError(f"{source}: image_size must be two positive integers [H, W], got {size.tolist()}")
@@ -99,6 +102,7 @@ def texture_model_from_arrays(v_template: np.ndarray, shapedirs: np.ndarray, ima
     keep = variance > variance[0] * MIN_VARIANCE_RATIO
     std = np.sqrt(variance[keep])
     basis_t = ((flat.astype(np.float32) @ (vectors[:, keep] / std).astype(np.float32)).T).copy()
+    basis_t *= np.sign(basis_t[np.arange(len(std)), np.abs(basis_t).argmax(axis=1)])[:, None]  # statfit.pca's signs
     return TextureModel(mean.astype(np.float32), basis_t, std, height, width, source)
 
 
@@ -153,7 +157,8 @@ def build_texture_model(images: Iterable[tuple[str, np.ndarray]], size: tuple[in
                         on_image: Callable[[str], None] | None = None) -> TextureModel:
     """PCA texture model from ``(name, image (H, W, C))`` pairs: each resized to ``size`` (H, W),
     all promoted to the largest channel count, ``jitter`` colour-jittered copies added per image
-    (:func:`jitter_colours`), then :func:`statfit.pca.principal_components` with ``k`` modes."""
+    (:func:`jitter_colours`), then :func:`statfit.pca.principal_components` with ``k`` modes (fewer,
+    with a warning, when there are not enough samples)."""
     resized = []
     for name, image in images:
         resized.append((name, resize_image(image, size)))
@@ -166,6 +171,10 @@ def build_texture_model(images: Iterable[tuple[str, np.ndarray]], size: tuple[in
     rng = np.random.default_rng(seed)
     if jitter > 0:
         stack = np.concatenate([stack, jitter_colours(stack, jitter, rng)])
+    if k > len(stack) - 1:
+        warnings.warn(f"{len(stack)} samples give at most {len(stack) - 1} modes; keeping {len(stack) - 1}",
+                      StatfitWarning)
+        k = len(stack) - 1
     pca = principal_components(stack.reshape(stack.shape[0], -1), k, randomized=randomized, seed=seed)
     return TextureModel(pca.mean.reshape(-1, channels).astype(np.float32), pca.directions.astype(np.float32),
                         pca.std, size[0], size[1])
