@@ -41,8 +41,8 @@ def inpaint(
                                 "per chart; colour never diffuses across a chart border.", show_default=False),
     iterations: int = typer.Option(None, help="Iterations. Default: the method's (docs/method.md).",
                                    show_default=False),
-    lr: float = typer.Option(None, help="UniformAdam step size, in colour units (images are in [0, 1]).",
-                             show_default=False),
+    lr: float = typer.Option(None, help="Step size: UniformAdam's in colour units (images are in [0, 1]); Adam's "
+                             "for pca (coefficients in standard deviations) and none.", show_default=False),
     beta: float = typer.Option(None, help="β of the statistical/hybrid filter: α = β/(1+β) of each step follows "
                                "the model's modes.", show_default=False),
     lam: float = typer.Option(None, help="λ of the grid Laplacian (laplacian, hybrid): larger spreads colour farther "

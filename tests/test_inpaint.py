@@ -118,10 +118,10 @@ def test_8_bit_and_float_inputs_of_one_image_fill_alike(tmp_path):
 
 @pytest.fixture(scope="module")
 def faces():
-    """A model (K = 40) of 150 generated 64×64 faces, and 5 held-out faces."""
+    """A model (K = 40) of 150 generated 64×64 faces, and 4 held-out faces."""
     train = face_textures(150, 64, seed=1)
     model = build_texture_model([(str(i), t) for i, t in enumerate(train)], (64, 64), 40)
-    return model, face_textures(5, 64, seed=99)
+    return model, face_textures(4, 64, seed=99)
 
 
 def test_texture_model_npz_round_trip_and_any_scale_directions(faces, tmp_path, rng):
@@ -217,10 +217,11 @@ def test_hybrid_beats_laplacian_on_sklearn_digits_with_a_central_hole():
     from sklearn.datasets import load_digits
 
     # 8×8 digits upscaled to 32×32: at 8×8 a hole leaves too few pixels for diffusion to matter.
-    digits = load_digits().images[..., None].astype(np.float32) / 16.0
-    images = np.stack([resize_image(d, (32, 32)) for d in digits])
-    model = build_texture_model([(str(i), d) for i, d in enumerate(images[10:])], (32, 32), 30)
+    digits = load_digits().images.astype(np.float32) / 16.0
+    # All 1,797 digits resampled at once, as the channels of one image.
+    images = resize_image(digits.transpose(1, 2, 0), (32, 32)).transpose(2, 0, 1)[..., None]
+    model = build_texture_model([(str(i), d) for i, d in enumerate(images[8:])], (32, 32), 30)
     visible = np.ones((32, 32), bool)
     visible[8:24, 8:24] = False                               # the central quarter of the image
-    scores = compare(model, images[:10], visible)
-    assert_hybrid_wins(scores, 0.1)
+    scores = compare(model, images[:8], visible)
+    assert_hybrid_wins(scores, 0.3)

@@ -101,7 +101,7 @@ def texture_model_from_arrays(v_template: np.ndarray, shapedirs: np.ndarray, ima
         raise StatfitError(f"{source}: shapedirs are all zero")
     keep = variance > variance[0] * MIN_VARIANCE_RATIO
     std = np.sqrt(variance[keep])
-    basis_t = ((flat.astype(np.float32) @ (vectors[:, keep] / std).astype(np.float32)).T).copy()
+    basis_t = (vectors[:, keep] / std).T.astype(np.float32) @ np.asarray(flat, dtype=np.float32).T  # (K, D), no copy of flat
     basis_t *= np.sign(basis_t[np.arange(len(std)), np.abs(basis_t).argmax(axis=1)])[:, None]  # statfit.pca's signs
     return TextureModel(mean.astype(np.float32), basis_t, std, height, width, source)
 
