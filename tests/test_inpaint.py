@@ -137,8 +137,8 @@ def test_texture_model_npz_round_trip_and_any_scale_directions(faces, tmp_path, 
     arrays = model.npz_arrays()
     mixed = arrays["shapedirs"] @ rng.standard_normal((40, 40))
     other = texture_model_from_arrays(arrays["v_template"], mixed, arrays["image_size"])
-    projector = other.basis_t.T @ other.basis_t
-    np.testing.assert_allclose(projector @ model.basis_t.T, model.basis_t.T, atol=1e-3)
+    projected = other.basis_t.T @ (other.basis_t @ model.basis_t.T)     # UUᵀ applied to the original basis
+    np.testing.assert_allclose(projected, model.basis_t.T, atol=1e-3)
 
 
 def test_jitter_changes_colours_within_range_and_keeps_alpha(rng):

@@ -62,7 +62,8 @@ class VisibleL1:
         pass
 
     def __call__(self, vertices: torch.Tensor) -> dict[str, torch.Tensor]:
-        return {"data": (vertices[self.index] - self.target).abs().mean()}
+        # index_select: its backward is deterministic, advanced indexing's is not with several threads.
+        return {"data": (vertices.index_select(0, self.index) - self.target).abs().mean()}
 
 
 def inpaint_settings(method: str, iterations: int | None = None, lr: float | None = None, beta: float | None = None,
