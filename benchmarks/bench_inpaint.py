@@ -72,8 +72,9 @@ def main() -> None:
                                              settings=inpaint_settings(method, iterations=args.iterations),
                                              on_record=lambda it, terms: stamps.append(time.perf_counter())))
         windows = np.diff(stamps[:-1]) / 10          # the last record comes at the final iteration, not a window
-        rows.append({"method": method, "iterations": args.iterations, "per_step_ms": 1e3 * float(np.median(windows[1:])),
-                     "fit_s": result.seconds, "inpaint_wall_s": wall, **hole_errors(result.result, truth, visible)})
+        rows.append({"method": method, "iterations": args.iterations,
+                     "per_step_ms": 1e3 * float(np.median(windows[1:])), "fit_s": result.seconds,
+                     "inpaint_wall_s": wall, **hole_errors(result.result, truth, visible)})
     report = {"size": [SIZE, SIZE, 3], "k": model.num_modes, "threads": args.threads, "machine": machine(),
               "model_build_s": model_s, "grid_laplacian_s": grid_s, "factorisation_s": factor_s,
               "reconstruction_s": reconstruction_s, "methods": rows,

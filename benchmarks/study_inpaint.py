@@ -92,10 +92,10 @@ def main() -> None:
         rows.append({"case": "digits", **evaluate(digits, "laplacian", lam=lam)})
     rows.append({"case": "digits", **evaluate(digits, "none")})
     RESULTS.write_text(json.dumps(rows, indent=1) + "\n")
-    print("| case | method | start | iterations | lr | β | λ | hole RMSE | hole corr. | s/fit |\n|---|---|---|---|---|---|---|---|---|---|")
+    columns = ("case", "method", "start", "iterations", "lr", "beta", "lam", "rmse", "correlation", "seconds_per_fit")
+    print("| " + " | ".join(columns) + " |\n" + "|---" * len(columns) + "|")
     for r in rows:
-        print(f"| {r['case']} | {r['method']} | {r['start']} | {r['iterations']} | {r['lr']} | {r['beta']:g} | {r['lam']:g} | "
-              f"{r['rmse']:.4f} | {r['correlation']:.3f} | {r['seconds_per_fit']:.2f} |")
+        print("| " + " | ".join(f"{r[c]:.4g}" if isinstance(r[c], float) else str(r[c]) for c in columns) + " |")
 
 
 if __name__ == "__main__":

@@ -155,7 +155,8 @@ BAD_INPAINT_INPUTS = {
         _png(t / "g.png", read_image(f / "face.png")[..., :1]))),
     "method needs a model": lambda t, f: _inpaint(f, "--method", "statistical"),
     "unknown method": lambda t, f: _inpaint(f, "--method", "magic"),
-    "charts of another size": lambda t, f: _inpaint(f, "--charts", str(_png(t / "c.png", np.ones((8, 8, 3), np.float32)))),
+    "charts of another size": lambda t, f: _inpaint(f, "--charts",
+                                                    str(_png(t / "c.png", np.ones((8, 8, 3), np.float32)))),
     "unwritable out": lambda t, f: _inpaint(f, "--out", "/proc/forbidden/fit.png"),
     "unwritable preview": lambda t, f: _inpaint(f, "--preview", "/proc/forbidden/fit.png"),
     "unsupported out format": lambda t, f: _inpaint(f, "--out", str(t / "fit.bmp")),
@@ -166,8 +167,8 @@ BAD_INPAINT_INPUTS = {
     "build from one image": lambda t, f: ["model", "build-texture", str(f / "face.png"), "-o", str(t / "fit.npz")],
     "build with a bad size": lambda t, f: ["model", "build-texture", str(f / "train"), "-o", str(t / "fit.npz"),
                                            "--size", "32x"],
-    "build from a corrupt image": lambda t, f: ["model", "build-texture", str(f / "face.png"), str(corrupt(t / "x.png")),
-                                                "-o", str(t / "fit.npz")],
+    "build from a corrupt image": lambda t, f: ["model", "build-texture", str(f / "face.png"),
+                                                str(corrupt(t / "x.png")), "-o", str(t / "fit.npz")],
     "build into a missing folder": lambda t, f: ["model", "build-texture", str(f / "train"), "-o",
                                                  str(t / "no" / "fit.npz")],
 }
@@ -178,7 +179,8 @@ def test_bad_inpaint_input_gives_one_line_and_exit_2(case, files, tmp_path, caps
     before = {p: p.read_bytes() for p in files.rglob("*") if p.is_file()}
     argv = BAD_INPAINT_INPUTS[case](tmp_path, files)
     if argv[0] == "inpaint":
-        argv += ["--log", str(tmp_path / "fit.jsonl"), *FAST] + ["--out", str(tmp_path / "fit.png")] * ("--out" not in argv)
+        argv += ["--log", str(tmp_path / "fit.jsonl"), *FAST]
+        argv += ["--out", str(tmp_path / "fit.png")] * ("--out" not in argv)
     code, _, err = run(argv, capsys)
     assert code == 2, err
     assert err.startswith("statfit: error: ") and err.count("\n") == 1, err

@@ -195,8 +195,9 @@ def compare(model, tests, visible) -> dict[str, np.ndarray]:
             "laplacian 999": ("laplacian", None, {"lam": 999.0})}
     scores = {}
     for name, (method, use_model, overrides) in runs.items():
-        errors = [hole_errors(inpaint(t, visible, method, use_model, settings=inpaint_settings(method, **overrides)).result,
-                              t, visible) for t in tests]
+        settings = inpaint_settings(method, **overrides)
+        errors = [hole_errors(inpaint(t, visible, method, use_model, settings=settings).result, t, visible)
+                  for t in tests]
         scores[name] = np.array([[e["rmse"], e["correlation"]] for e in errors]).mean(axis=0)
     return scores
 

@@ -29,12 +29,14 @@ def grid_laplacian(height: int, width: int, charts: np.ndarray | None = None) ->
     ``charts`` (H, W) labels, only edges inside one chart (module docstring)."""
     if height < 1 or width < 1:
         raise StatfitError(f"an image grid needs a positive size, got {height}×{width}")
-    laplacian = sp.kron(sp.identity(height), path_laplacian(width)) + sp.kron(path_laplacian(height), sp.identity(width))
+    laplacian = (sp.kron(sp.identity(height), path_laplacian(width))
+                 + sp.kron(path_laplacian(height), sp.identity(width)))
     if charts is None:
         return laplacian.tocsc()
     charts = np.asarray(charts)
     if charts.shape != (height, width):
-        raise StatfitError(f"the chart image is {charts.shape[1]}×{charts.shape[0]} but the texture is {width}×{height}")
+        raise StatfitError(f"the chart image is {charts.shape[1]}×{charts.shape[0]} but the texture is "
+                           f"{width}×{height}")
     labels = charts.reshape(-1)
     adjacency = sp.coo_matrix(sp.diags(laplacian.diagonal()) - laplacian)
     keep = (labels[adjacency.row] == labels[adjacency.col]) & (labels[adjacency.row] != 0)

@@ -120,7 +120,8 @@ def model_reconstruction(model: TextureModel, image: np.ndarray, visible: np.nda
     masked = basis_t * weight
     gram = (masked @ basis_t.T).double() * std[:, None] * std[None, :]
     rhs = (masked @ residual).double() * std
-    coeffs = torch.linalg.solve(gram + PROJECTION_NOISE**2 * torch.eye(len(std), dtype=torch.float64, device=device), rhs)
+    prior = PROJECTION_NOISE**2 * torch.eye(len(std), dtype=torch.float64, device=device)
+    coeffs = torch.linalg.solve(gram + prior, rhs)
     flat = mean + (coeffs * std).to(basis_t.dtype) @ basis_t
     return flat.reshape(image.shape).cpu().numpy()
 
@@ -148,9 +149,9 @@ def inpaint(image: np.ndarray, visible: np.ndarray, method: str | None = None, m
     if start not in STARTS:
         raise StatfitError(f"unknown start {start!r}; choose one of {', '.join(STARTS)}")
     if resize and model is not None and model.size != image.shape[:2]:
+        labels = None if charts is None else resize_labels(charts, model.size)
         fitted = inpaint(resize_image(image, model.size), resize_mask(visible, model.size), method, model,
-                         settings=settings, start=start, charts=None if charts is None else resize_labels(charts, model.size),
-                         device=device, on_record=on_record)
+                         settings=settings, start=start, charts=labels, device=device, on_record=on_record)
         filled = resize_image(fitted.result, image.shape[:2])
         return replace(fitted, result=np.where(visible[..., None], image, filled),
                        model_only=resize_image(fitted.model_only, image.shape[:2]))

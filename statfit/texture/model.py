@@ -101,7 +101,8 @@ def texture_model_from_arrays(v_template: np.ndarray, shapedirs: np.ndarray, ima
         raise StatfitError(f"{source}: shapedirs are all zero")
     keep = variance > variance[0] * MIN_VARIANCE_RATIO
     std = np.sqrt(variance[keep])
-    basis_t = (vectors[:, keep] / std).T.astype(np.float32) @ np.asarray(flat, dtype=np.float32).T  # (K, D), no copy of flat
+    # (K, D) directly: flat.T is a view, so the tall shapedirs are not copied.
+    basis_t = (vectors[:, keep] / std).T.astype(np.float32) @ np.asarray(flat, dtype=np.float32).T
     basis_t *= np.sign(basis_t[np.arange(len(std)), np.abs(basis_t).argmax(axis=1)])[:, None]  # statfit.pca's signs
     return TextureModel(mean.astype(np.float32), basis_t, std, height, width, source)
 
@@ -110,7 +111,8 @@ def load_texture_model(path: str | Path) -> TextureModel:
     """Load and validate a texture model npz."""
     arrays = read_npz(path, "texture model")
     if "image_size" not in arrays:
-        raise StatfitError(f"{path} is not a texture model (no image_size); build one with `statfit model build-texture`")
+        raise StatfitError(f"{path} is not a texture model (no image_size); build one with "
+                           "`statfit model build-texture`")
     missing = [key for key in ("v_template", "shapedirs") if key not in arrays]
     if missing:
         raise StatfitError(f"texture model {path} lacks the key(s) {', '.join(missing)}")
