@@ -56,11 +56,6 @@ class TextureModel:
         flat = self.mean.reshape(-1) + (np.asarray(coeffs, dtype=np.float64) * self.std) @ self.basis_t
         return flat.reshape(self.height, self.width, self.channels).astype(np.float32)
 
-    def variance_explained(self) -> np.ndarray:
-        """Cumulative fraction of the model's variance explained by the first k modes, (K,)."""
-        var = self.std**2
-        return np.cumsum(var) / var.sum()
-
     def npz_arrays(self) -> dict[str, np.ndarray]:
         """The model in the npz contract (float32 arrays)."""
         shapedirs = (self.basis_t * self.std[:, None].astype(np.float32)).T
