@@ -7,7 +7,7 @@ import warnings
 import typer
 
 from statfit.errors import StatfitError
-from statfit_cli import demo, evaluate, model, register, render, synth
+from statfit_cli import demo, evaluate, inpaint, model, register, render, synth, texture
 
 app = typer.Typer(
     help="Fit a template mesh to limited observations (a partial scan, or a normal map) with statistical gradient filtering.\n\n"
@@ -18,7 +18,9 @@ app.command("register")(register.register)
 app.command("render")(render.render)
 app.command("demo")(demo.demo)
 app.command("eval")(evaluate.evaluate)
+app.command("inpaint")(inpaint.inpaint)
 app.add_typer(synth.app, name="synth")
+model.app.command("build-texture")(texture.build_texture)
 app.add_typer(model.app, name="model")
 
 

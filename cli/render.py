@@ -9,9 +9,10 @@ import typer
 
 from statfit.errors import StatfitError
 from statfit.inverse_render import camera_space_normals, reconstruct
+from statfit.io.image import read_mask
 from statfit.io.jsonlog import JsonLinesLog, versions
 from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_mesh, write_atomic
-from statfit.io.normalmap import apply_mask, camera_for_map, read_mask, read_normal_map
+from statfit.io.normalmap import apply_mask, camera_for_map, read_normal_map
 from statfit.methods import resolve
 from statfit.objectives.normals import SILHOUETTE_WEIGHT
 from statfit.register import resolve_device

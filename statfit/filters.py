@@ -13,10 +13,11 @@ deviations, so low-variance modes move slower).
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 import torch
 
 from statfit.solvers import make_solver
-from statfit.laplacian import LaplacianKind, smoothing_matrix
+from statfit.laplacian import LaplacianKind, identity_plus, smoothing_matrix
 
 
 def beta_with_power(beta: float, power: float) -> float:
@@ -38,6 +39,15 @@ class LaplacianFilter:
                  solver: str = "cholespy", dtype: torch.dtype = torch.float32, device: str | torch.device = "cpu"):
         self.lam = lam
         self._solver = make_solver(smoothing_matrix(vertices, faces, lam, kind), solver, dtype, device)
+
+    @classmethod
+    def from_laplacian(cls, laplacian: sp.spmatrix, lam: float, solver: str = "cholespy",
+                       dtype: torch.dtype = torch.float32, device: str | torch.device = "cpu") -> "LaplacianFilter":
+        """The filter for a ready Laplacian ``L`` (N, N), e.g. an image grid's."""
+        filt = cls.__new__(cls)
+        filt.lam = lam
+        filt._solver = make_solver(identity_plus(laplacian, lam), solver, dtype, device)
+        return filt
 
     def __call__(self, g: torch.Tensor) -> torch.Tensor:
         return self._solver.solve(g)

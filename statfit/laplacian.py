@@ -26,5 +26,9 @@ def laplacian(vertices: np.ndarray, faces: np.ndarray, kind: LaplacianKind = "un
 def smoothing_matrix(vertices: np.ndarray, faces: np.ndarray, lam: float,
                      kind: LaplacianKind = "uniform") -> sp.csc_matrix:
     """M = I + λL, symmetric positive definite for λ ≥ 0."""
-    n = vertices.shape[0]
-    return (sp.identity(n, format="csc") + lam * laplacian(vertices, faces, kind)).tocsc()
+    return identity_plus(laplacian(vertices, faces, kind), lam)
+
+
+def identity_plus(laplacian: sp.spmatrix, lam: float) -> sp.csc_matrix:
+    """I + λL for any Laplacian ``L`` (N, N): mesh or image grid."""
+    return (sp.identity(laplacian.shape[0], format="csc") + lam * laplacian).tocsc()

@@ -9,6 +9,7 @@ from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import numpy as np
+import scipy.sparse as sp
 import torch
 
 from statfit.errors import StatfitError
@@ -92,12 +93,14 @@ RENDER_PIPELINES: dict[str, tuple[Settings, ...]] = {"default": (RENDER_TUNED["h
 
 @dataclass(frozen=True)
 class FitSpace:
-    """The model in the fit frame, as tensors: mean (N, 3), basis_t = Uᵀ (K, 3N), std (K,)."""
+    """The model in the fit frame, as tensors: mean (N, c), basis_t = Uᵀ (K, cN), std (K,); the
+    Laplacian comes from the mesh ``faces``, or is given ready (``laplacian``, e.g. an image grid's)."""
 
     mean: torch.Tensor
     basis_t: torch.Tensor
     std: torch.Tensor
-    faces: np.ndarray
+    faces: np.ndarray | None
+    laplacian: sp.spmatrix | None = None
 
 
 def resolve(method: str, preset: str = "tuned", job: str = "register", **overrides: Any) -> tuple[Settings, ...]:
@@ -155,8 +158,11 @@ def make_filter(settings: Settings, space: FitSpace, x0: torch.Tensor):
     gain = (space.std / space.std[0]) ** settings.mode_gain if settings.mode_gain else None
     if settings.method == "statistical":
         return StatisticalFilter(space.basis_t, settings.beta, settings.power, gain)
-    smooth = LaplacianFilter(x0.detach().cpu().double().numpy(), space.faces, settings.lam, settings.laplacian,
-                             settings.solver, x0.dtype, x0.device)
+    if space.laplacian is not None:
+        smooth = LaplacianFilter.from_laplacian(space.laplacian, settings.lam, settings.solver, x0.dtype, x0.device)
+    else:
+        smooth = LaplacianFilter(x0.detach().cpu().double().numpy(), space.faces, settings.lam, settings.laplacian,
+                                 settings.solver, x0.dtype, x0.device)
     if settings.method == "laplacian":
         return smooth
     if settings.method == "hybrid":

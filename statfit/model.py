@@ -9,13 +9,13 @@ The basis used by the filters is derived by SVD: ``shapedirs`` flattened to (3N,
 """
 from __future__ import annotations
 
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from statfit.errors import StatfitError
+from statfit.io.npz import read_npz
 
 
 @dataclass(frozen=True)
@@ -98,15 +98,9 @@ def model_from_arrays(v_template: np.ndarray, faces: np.ndarray, shapedirs: np.n
 def load_model(path: str | Path, k: int | None = None) -> StatModel:
     """Load and validate a model npz; keep the first ``k`` modes when given."""
     path = Path(path)
-    if not path.is_file():
-        raise StatfitError(f"model file not found: {path}")
-    if not zipfile.is_zipfile(path):
-        raise StatfitError(f"cannot read model {path}: not an npz archive")
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {key: data[key] for key in data.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        raise StatfitError(f"cannot read model {path}: {exc}") from None
+    arrays = read_npz(path)
+    if np.asarray(arrays.get("kind", "")).reshape(-1).tolist() == ["texture"]:
+        raise StatfitError(f"{path} is a texture model (for `statfit inpaint --model`), not a mesh model")
     missing = [key for key in ("v_template", "faces", "shapedirs") if key not in arrays]
     if missing:
         raise StatfitError(f"model {path} lacks the key(s) {', '.join(missing)}")

@@ -7,22 +7,15 @@ may travel in the header as the standard ``worldToCamera`` attribute (4×4) plus
 from __future__ import annotations
 
 import json
-import os
-import tempfile
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
-import OpenEXR
-from PIL import Image
 
 from statfit.errors import StatfitError
+from statfit.io.exr import read_exr, write_exr
 from statfit.io.mesh import write_atomic
 from statfit.render.camera import Camera
-
-EXR_MAGIC = b"\x76\x2f\x31\x01"
 
 
 @dataclass(frozen=True)
@@ -34,33 +27,10 @@ class NormalMap:
     camera: Camera | None = None
 
 
-@contextmanager
-def _quiet_stderr() -> Iterator[None]:
-    """Silence the OpenEXR C library, which prints its own messages on failures."""
-    saved = os.dup(2)
-    try:
-        with open(os.devnull, "wb") as null:
-            os.dup2(null.fileno(), 2)
-            yield
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
-
-
 def read_normal_map(path: str | Path) -> NormalMap:
     """Read and validate a normal-map EXR."""
     path = Path(path)
-    if not path.is_file():
-        raise StatfitError(f"normal map not found: {path}")
-    with open(path, "rb") as handle:
-        if handle.read(4) != EXR_MAGIC:
-            raise StatfitError(f"{path} is not an OpenEXR file")
-    try:
-        with _quiet_stderr(), OpenEXR.File(str(path), separate_channels=True) as exr:
-            header = dict(exr.header())
-            channels = {name: np.asarray(ch.pixels, dtype=np.float32) for name, ch in exr.channels().items()}
-    except Exception as exc:  # the bindings raise RuntimeError and friends for damaged files
-        raise StatfitError(f"cannot read {path}: damaged OpenEXR file ({exc})") from None
+    header, channels = read_exr(path, "normal map")
     missing = [c for c in "RGB" if c not in channels]
     if missing:
         raise StatfitError(f"{path} has no {'/'.join(missing)} channel(s); it has {', '.join(sorted(channels)) or 'none'}")
@@ -77,19 +47,6 @@ def apply_mask(normal_map: NormalMap, mask: np.ndarray, source: str) -> NormalMa
                            f"{normal_map.mask.shape[1]}×{normal_map.mask.shape[0]}")
     normals, mask = _validated(normal_map.normals, np.linalg.norm(normal_map.normals, axis=-1), mask, source)
     return NormalMap(normals, mask, normal_map.camera)
-
-
-def read_mask(path: str | Path) -> np.ndarray:
-    """A coverage mask (H, W) bool from an image file (PNG, ...): white (> 50% grey) is foreground."""
-    path = Path(path)
-    if not path.is_file():
-        raise StatfitError(f"mask not found: {path}")
-    try:
-        with Image.open(path) as image:
-            grey = np.asarray(image.convert("L"), dtype=np.float32) / 255.0
-    except (OSError, ValueError) as exc:
-        raise StatfitError(f"cannot read mask {path}: {exc}") from None
-    return grey > 0.5
 
 
 def _validated(normals: np.ndarray, length: np.ndarray, mask: np.ndarray, source) -> tuple[np.ndarray, np.ndarray]:
@@ -133,18 +90,13 @@ def camera_for_map(normal_map: NormalMap, camera_path: str | Path | None, source
 def write_normal_map(path: str | Path, normals: np.ndarray, mask: np.ndarray, camera: Camera | None = None) -> None:
     """Write normals (H, W, 3) and mask (H, W) as a float EXR (R, G, B, A), atomically; with
     ``camera``, its K and world_to_camera go into the header."""
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    header = {}
     if camera is not None:
         header["K"] = camera.K.numpy().astype(np.float32)
         header["worldToCamera"] = camera.world_to_camera.numpy().astype(np.float32)
-    channels = {c: np.ascontiguousarray(normals[..., i], dtype=np.float32) for i, c in enumerate("RGB")}
+    channels = {c: normals[..., i] for i, c in enumerate("RGB")}
     channels["A"] = mask.astype(np.float32)
-    folder = Path(path).parent
-    with tempfile.TemporaryDirectory(dir=folder if folder.is_dir() else None) as scratch:
-        staging = Path(scratch) / "map.exr"
-        with OpenEXR.File(header, channels) as exr:
-            exr.write(str(staging))
-        write_atomic(path, staging.read_bytes())
+    write_exr(path, channels, header)
 
 
 def read_camera(path: str | Path) -> Camera:

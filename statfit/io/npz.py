@@ -1,10 +1,13 @@
-"""Model files: npz archives with reproducible bytes (fixed zip timestamps, no pickles)."""
+"""Model files: npz archives with reproducible bytes (fixed zip timestamps, no pickles), and reading them."""
 from __future__ import annotations
 
 import io
 import zipfile
+from pathlib import Path
 
 import numpy as np
+
+from statfit.errors import StatfitError
 
 
 def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
@@ -19,3 +22,17 @@ def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
             info.compress_type = zipfile.ZIP_DEFLATED
             archive.writestr(info, member.getvalue())
     return buffer.getvalue()
+
+
+def read_npz(path: str | Path, what: str = "model") -> dict[str, np.ndarray]:
+    """All arrays of the npz archive at ``path`` (no pickles); ``what`` names it in messages."""
+    path = Path(path)
+    if not path.is_file():
+        raise StatfitError(f"{what} file not found: {path}")
+    if not zipfile.is_zipfile(path):
+        raise StatfitError(f"cannot read {what} {path}: not an npz archive")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {key: data[key] for key in data.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        raise StatfitError(f"cannot read {what} {path}: {exc}") from None

@@ -1,0 +1,119 @@
+"""Images in and out: PNG/JPG (Pillow, 8 or 16 bit) and OpenEXR (float), grey, RGB or RGBA, as
+float32 arrays (H, W, C) in [0, 1]; masks and UV-chart label images as (H, W) arrays.
+
+8-bit values v map to v / 255 and back by rounding, so an 8-bit image survives a round trip
+exactly; EXR values are kept as they are (float, not clipped on reading).
+"""
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+from statfit.errors import StatfitError
+from statfit.io.exr import is_exr, read_exr, write_exr
+from statfit.io.mesh import write_atomic
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")
+EXR_CHANNELS = {1: "Y", 3: "RGB", 4: "RGBA"}
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """An image as float32 (H, W, C) with C = 1 (grey), 3 (RGB) or 4 (RGBA); values in [0, 1]
+    for 8/16-bit files. Palette and grey-with-alpha images become RGB(A)."""
+    path = Path(path)
+    if not path.is_file():
+        raise StatfitError(f"image not found: {path}")
+    if path.stat().st_size == 0:
+        raise StatfitError(f"{path} is empty")
+    image = _read_exr(path) if is_exr(path) else _read_pillow(path)
+    if not np.isfinite(image).all():
+        bad = int((~np.isfinite(image)).any(axis=-1).sum())
+        raise StatfitError(f"{path} has NaN or infinite values on {bad} pixels")
+    return image
+
+
+def _read_pillow(path: Path) -> np.ndarray:
+    try:
+        with Image.open(path) as image:
+            image.load()
+            if image.mode in ("I;16", "I;16B", "I;16L", "I"):
+                return (np.asarray(image, dtype=np.float32) / 65535.0)[..., None]
+            if image.mode not in ("L", "RGB", "RGBA"):
+                image = image.convert("RGBA" if "A" in image.getbands() or "transparency" in image.info else "RGB")
+            data = np.asarray(image, dtype=np.float32) / 255.0
+    except (OSError, ValueError, UnidentifiedImageError) as exc:
+        raise StatfitError(f"cannot read image {path}: {exc}") from None
+    return data[..., None] if data.ndim == 2 else data
+
+
+def _read_exr(path: Path) -> np.ndarray:
+    _, channels = read_exr(path, "image")
+    for names in ("RGBA", "RGB", "Y"):
+        if all(c in channels for c in names):
+            return np.stack([channels[c] for c in names], axis=-1)
+    raise StatfitError(f"{path} has neither R, G, B nor Y channels; it has {', '.join(sorted(channels)) or 'none'}")
+
+
+def image_bytes(image: np.ndarray, suffix: str) -> bytes:
+    """``image`` (H, W, C) in [0, 1] encoded as 8-bit PNG or JPEG (``suffix`` .png/.jpg/.jpeg;
+    values are clipped; JPEG drops alpha)."""
+    data = np.round(np.clip(image, 0.0, 1.0) * 255.0).astype(np.uint8)
+    data = data[..., 0] if data.shape[-1] == 1 else data
+    if suffix == ".png":
+        fmt, options = "PNG", {}
+    else:
+        fmt, options = "JPEG", {"quality": 95}
+        if data.ndim == 3 and data.shape[-1] == 4:
+            data = data[..., :3]
+    buffer = io.BytesIO()
+    Image.fromarray(data).save(buffer, format=fmt, **options)
+    return buffer.getvalue()
+
+
+def write_image(path: str | Path, image: np.ndarray) -> None:
+    """Write ``image`` (H, W, C), C in 1/3/4, atomically: float EXR for ``.exr``, else 8-bit PNG/JPEG."""
+    suffix = image_suffix(path)
+    if image.ndim != 3 or image.shape[-1] not in EXR_CHANNELS:
+        raise StatfitError(f"cannot write an image of shape {image.shape}: need (H, W, 1, 3 or 4)")
+    if suffix == ".exr":
+        write_exr(path, {c: image[..., i] for i, c in enumerate(EXR_CHANNELS[image.shape[-1]])})
+    else:
+        write_atomic(path, image_bytes(image, suffix))
+
+
+def image_suffix(path: str | Path) -> str:
+    """The path's lower-case suffix if it is an image format statfit writes, else a StatfitError."""
+    suffix = Path(path).suffix.lower()
+    if suffix not in IMAGE_SUFFIXES:
+        raise StatfitError(f"{path}: unsupported image format {suffix!r}; use one of {', '.join(IMAGE_SUFFIXES)}")
+    return suffix
+
+
+def _read_grey_or_rgb(path: str | Path, what: str, mode: str) -> np.ndarray:
+    path = Path(path)
+    if not path.is_file():
+        raise StatfitError(f"{what} not found: {path}")
+    try:
+        with Image.open(path) as image:
+            return np.asarray(image.convert(mode))
+    except (OSError, ValueError, UnidentifiedImageError) as exc:
+        raise StatfitError(f"cannot read {what} {path}: {exc}") from None
+
+
+def read_mask(path: str | Path) -> np.ndarray:
+    """A mask (H, W) bool from an image file (PNG, ...): white (> 50% grey) is True (foreground,
+    or visible)."""
+    return _read_grey_or_rgb(path, "mask", "L") > 127
+
+
+def read_charts(path: str | Path) -> np.ndarray:
+    """UV-chart labels (H, W) int64 from an image: black is outside every chart (0); every other
+    colour is one chart (1, 2, … in order of colour value). A black-and-white mask is one label."""
+    rgb = _read_grey_or_rgb(path, "chart image", "RGB").astype(np.int64)
+    packed = (rgb[..., 0] << 16) | (rgb[..., 1] << 8) | rgb[..., 2]
+    colours, labels = np.unique(packed, return_inverse=True)
+    labels = labels.reshape(packed.shape) + (0 if colours[0] == 0 else 1)
+    return labels

@@ -1,0 +1,1 @@
+"""Texture inpainting: the gradient filters on an image grid, texture PCA models, the fit."""
