@@ -11,12 +11,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import subprocess
 import sys
 from pathlib import Path
 
-ICT = Path(__file__).resolve().parents[2] / "shared" / "data" / "ict-face"
+from common import ICT, machine
+
 METHODS = ("statistical", "hybrid", "laplacian", "pca", "regularized", "none", "default")
 STAGES = ("correspondences", "loss", "backward", "filter", "step")
 
@@ -51,17 +51,6 @@ def measure(method: str, iterations: int | None, threads: int, preset: str) -> d
             "fit_s": result.seconds,
             "per_iteration_ms": {k: 1e3 * result.stage_seconds.get(k, 0.0) / total_iterations for k in STAGES},
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
-
-
-def machine() -> dict:
-    import numpy
-    import scipy
-    import torch
-
-    cpu = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                if line.startswith("model name")), platform.processor())
-    return {"cpu": cpu, "python": platform.python_version(), "torch": torch.__version__,
-            "numpy": numpy.__version__, "scipy": scipy.__version__}
 
 
 def main() -> None:

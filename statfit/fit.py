@@ -62,28 +62,33 @@ class FitResult:
 
 
 Progress = Callable[[int, dict[str, float]], None]
+Snapshot = Callable[[int, torch.Tensor], None]
 
 
 def run_fit(param: Parametrization, optimizer: torch.optim.Optimizer, objective: Objective, iterations: int,
             *, on_record: Progress | None = None, record_every: int = 10, timer: StageTimer | None = None,
-            first_iteration: int = 0) -> FitResult:
+            first_iteration: int = 0, on_snapshot: Snapshot | None = None) -> FitResult:
     """Minimise ``objective`` over ``param`` for ``iterations`` steps.
 
-    ``on_record(iteration, terms)`` is called every ``record_every`` iterations and at the end.
+    ``on_record(iteration, terms)`` is called every ``record_every`` iterations and at the end;
+    ``on_snapshot(iteration, vertices)``, at the same iterations, gets the vertices the loss was
+    evaluated at (detached; e.g. to trace the error against a ground truth).
     Raises DivergenceError naming the iteration when the loss stops being finite.
     """
     timer = timer or StageTimer()
     # Filtered gradients decay to subnormal floats far from the data; on CPUs those are ~100x slower.
     flushed = torch.set_flush_denormal(True)
     try:
-        return _loop(param, optimizer, objective, iterations, on_record, record_every, timer, first_iteration)
+        return _loop(param, optimizer, objective, iterations, on_record, record_every, timer, first_iteration,
+                     on_snapshot)
     finally:
         if flushed:
             torch.set_flush_denormal(False)
 
 
 def _loop(param: Parametrization, optimizer: torch.optim.Optimizer, objective: Objective, iterations: int,
-          on_record: Progress | None, record_every: int, timer: StageTimer, first_iteration: int) -> FitResult:
+          on_record: Progress | None, record_every: int, timer: StageTimer, first_iteration: int,
+          on_snapshot: Snapshot | None) -> FitResult:
     start = time.perf_counter()
     terms: dict[str, float] = {}
     for step in range(iterations):
@@ -111,6 +116,8 @@ def _loop(param: Parametrization, optimizer: torch.optim.Optimizer, objective: O
                 raise DivergenceError(f"the fit diverged at iteration {it}: the loss is {terms['total']}")
             if on_record:
                 on_record(it, terms)
+            if on_snapshot:
+                on_snapshot(it, x.detach())
     final = param.vertices()
     if not bool(torch.isfinite(final).all()):
         raise DivergenceError(f"the fit diverged at iteration {first_iteration + iterations - 1}: "
