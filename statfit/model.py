@@ -16,6 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from statfit.errors import StatfitError
+from statfit.io.mesh import write_atomic
+from statfit.io.npz import npz_bytes
 
 
 @dataclass(frozen=True)
@@ -114,6 +116,40 @@ def load_model(path: str | Path, k: int | None = None) -> StatModel:
     model = model_from_arrays(arrays["v_template"], arrays["faces"], arrays["shapedirs"],
                               arrays.get("landmarks"), regions, source=str(path))
     return model.truncated(k) if k is not None else model
+
+
+def model_arrays(model: StatModel) -> dict[str, np.ndarray]:
+    """The npz-contract arrays of ``model`` (shapedirs = basis scaled by the std-devs)."""
+    arrays = {"v_template": model.template, "faces": model.faces,
+              "shapedirs": (model.basis * model.std).reshape(model.num_vertices, 3, model.num_modes)}
+    if model.landmarks is not None:
+        arrays["landmarks"] = model.landmarks
+    arrays.update({f"region_{name}": index for name, index in model.regions.items()})
+    return arrays
+
+
+def save_model(model: StatModel, path: str | Path) -> None:
+    """Write ``model`` as an npz in the contract, atomically, with reproducible bytes."""
+    write_atomic(path, npz_bytes(model_arrays(model)))
+
+
+def region_vertices(model: StatModel, name: str) -> np.ndarray:
+    """The vertex indices of the region ``name``; a clear error lists the model's regions."""
+    if name not in model.regions:
+        known = ", ".join(sorted(model.regions)) or "none"
+        raise StatfitError(f"the model has no region {name!r} (its regions: {known})")
+    return model.regions[name]
+
+
+# Largest bounding-box side of a head (0.1–0.5 m) or a body (1–2.5 m) in each unit.
+_UNIT_RANGES = (("metres (head-sized)", 0.1, 0.5), ("metres (body-sized)", 1.0, 2.5),
+                ("centimetres (head-sized)", 10.0, 50.0), ("millimetres (head-sized)", 100.0, 500.0))
+
+
+def units_guess(template: np.ndarray) -> str:
+    """A guess of the model's length unit from its largest extent, or ``unknown``."""
+    extent = float(np.ptp(template, axis=0).max())
+    return next((name for name, low, high in _UNIT_RANGES if low <= extent <= high), "unknown")
 
 
 def default_model_path() -> Path:
