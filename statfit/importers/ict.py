@@ -69,7 +69,7 @@ def identity_files(folder: Path) -> list[Path]:
     return sorted(files, key=lambda p: int(IDENTITY_PATTERN.fullmatch(p.name).group(1)))
 
 
-def select_regions(spec: str, num_vertices: int, table: dict[str, tuple[int, int]] = REGIONS
+def select_regions(spec: str, num_vertices: int, table: dict[str, tuple[int, int]]
                    ) -> dict[str, np.ndarray]:
     """Vertex indices of each region named in ``spec`` (``face+head``), checked against the table
     and the mesh's vertex count."""
@@ -97,7 +97,7 @@ def import_ict(folder: str | Path, *, k: int | None = None, region: str | None =
         if not 1 <= k <= len(files):
             raise StatfitError(f"--k must be between 1 and {len(files)}, the folder's identity meshes")
         files = files[:k]
-    regions = select_regions(region or DEFAULT_REGION, len(neutral))
+    regions = select_regions(region or DEFAULT_REGION, len(neutral), REGIONS)
     keep = np.unique(np.concatenate(list(regions.values())))
     directions = np.empty((len(keep), 3, len(files)))
     for i, file in enumerate(files):
