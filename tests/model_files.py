@@ -1,6 +1,7 @@
 """Writers of small model files in each source format's real layout (keys, dtypes, nesting), for tests."""
 from __future__ import annotations
 
+import io
 import pickle
 import sys
 import types
@@ -57,15 +58,44 @@ def random_smpl_arrays(rng: np.random.Generator, n: int = 60, k: int = 400) -> d
             "J": rng.standard_normal((5, 3)), "bs_style": "lbs", "bs_type": "lrotmin"}
 
 
-def write_flame_pickle(path: Path, arrays: dict, chumpy: bool = True) -> Path:
-    """FLAME 2020 style (``chumpy``: shapedirs and J as chumpy Ch, protocol 2) or 2023 style (numpy)."""
+class Python2Pickler(pickle._Pickler):
+    """Writes bytes and text as Python 2 ``str`` (SHORT_BINSTRING / BINSTRING opcodes), as the
+    chumpy-era FLAME and SMPL pickles hold their keys and array buffers, instead of Python 3's
+    unicode strings and ``_codecs.encode`` calls."""
+
+    def save_py2_str(self, obj: bytes) -> None:
+        size = len(obj)
+        header = pickle.SHORT_BINSTRING + bytes([size]) if size < 256 else pickle.BINSTRING + size.to_bytes(4, "little")
+        self.write(header + obj)  # not memoised: short bytes are shared objects, so ids repeat
+
+    def save_text_as_py2_str(self, obj: str) -> None:
+        self.save_py2_str(obj.encode("latin1"))
+
+    dispatch = dict(pickle._Pickler.dispatch)
+    dispatch[bytes] = save_py2_str
+    dispatch[str] = save_text_as_py2_str
+
+
+# Module paths of numpy 1.x and scipy < 1.8, which the distributed pickles name.
+OLD_MODULES = {b"numpy._core.multiarray\n": b"numpy.core.multiarray\n", b"scipy.sparse._csc\n": b"scipy.sparse.csc\n"}
+
+
+def write_flame_pickle(path: Path, arrays: dict, style: str = "2020") -> Path:
+    """FLAME 2020 style (``2020``: shapedirs and J as chumpy Ch, protocol 2; ``2020-py2``: the same
+    with Python-2 strings and numpy 1.x / old scipy module paths) or 2023 style (plain numpy)."""
     data = dict(arrays)
-    if chumpy:
-        with fake_chumpy():
-            data["shapedirs"], data["J"] = Ch(arrays["shapedirs"]), Ch(arrays["J"])
-            path.write_bytes(pickle.dumps(data, protocol=2))
-    else:
+    if style == "2023":
         path.write_bytes(pickle.dumps(data, protocol=4))
+        return path
+    with fake_chumpy():
+        data["shapedirs"], data["J"] = Ch(arrays["shapedirs"]), Ch(arrays["J"])
+        buffer = io.BytesIO()
+        (Python2Pickler if style == "2020-py2" else pickle.Pickler)(buffer, protocol=2).dump(data)
+    raw = buffer.getvalue()
+    if style == "2020-py2":
+        for new, old in OLD_MODULES.items():
+            raw = raw.replace(new, old)
+    path.write_bytes(raw)
     return path
 
 

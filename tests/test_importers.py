@@ -33,10 +33,11 @@ def smpl_arrays(rng):
     return random_smpl_arrays(rng)
 
 
-@pytest.mark.parametrize("chumpy", [True, False], ids=["flame2020-chumpy", "flame2023-numpy"])
-def test_flame_pickle_keeps_identity_and_optionally_expression(tmp_path, smpl_arrays, chumpy):
-    path = write_flame_pickle(tmp_path / "generic_model.pkl", smpl_arrays, chumpy=chumpy)
-    assert (b"chumpy.ch" in path.read_bytes()) == chumpy
+@pytest.mark.parametrize("style", ["2020", "2020-py2", "2023"])
+def test_flame_pickle_keeps_identity_and_optionally_expression(tmp_path, smpl_arrays, style):
+    path = write_flame_pickle(tmp_path / "generic_model.pkl", smpl_arrays, style)
+    assert (b"chumpy.ch\nCh\n" in path.read_bytes()) == (style != "2023")
+    assert (b"_codecs" in path.read_bytes()) == (style == "2020")
     identity = import_model(path)
     np.testing.assert_array_equal(identity.template, smpl_arrays["v_template"])
     np.testing.assert_array_equal(identity.faces, smpl_arrays["f"])
@@ -45,8 +46,9 @@ def test_flame_pickle_keeps_identity_and_optionally_expression(tmp_path, smpl_ar
     assert_same_distribution(import_model(path, k=7), smpl_arrays["shapedirs"][..., :7])
 
 
-def test_chumpy_pickle_arrays_and_sparse_matrices_come_back_exactly(tmp_path, smpl_arrays):
-    loaded = load_pickle(write_flame_pickle(tmp_path / "m.pkl", smpl_arrays))
+@pytest.mark.parametrize("style", ["2020", "2020-py2"])
+def test_chumpy_pickle_arrays_and_sparse_matrices_come_back_exactly(tmp_path, smpl_arrays, style):
+    loaded = load_pickle(write_flame_pickle(tmp_path / "m.pkl", smpl_arrays, style))
     for key in ("shapedirs", "J", "posedirs", "kintree_table"):
         np.testing.assert_array_equal(loaded[key], smpl_arrays[key])
     assert scipy.sparse.issparse(loaded["J_regressor"])
