@@ -15,30 +15,12 @@ from scipy.spatial.transform import Rotation
 
 from model_files import random_smpl_arrays, write_flame_pickle
 from statfit.model import default_model_path, load_model, model_arrays
-from statfit_cli.main import main
-
-FAST = ["--iterations", "60", "-q"]
-
-
-def run(argv: list[str], capsys) -> tuple[int, str, str]:
-    with pytest.raises(SystemExit) as exit_info:
-        main(argv)
-    out, err = capsys.readouterr()
-    return exit_info.value.code, out, err
+from test_cli import FAST, run, scan_files  # noqa: F401 (scan_files is a fixture)
 
 
 @pytest.fixture(autouse=True)
 def _cache(tmp_path_factory, monkeypatch):
     monkeypatch.setenv("STATFIT_CACHE_DIR", str(tmp_path_factory.mktemp("cache")))
-
-
-@pytest.fixture(scope="module")
-def scan_files(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("scan")
-    with pytest.raises(SystemExit) as exit_info:
-        main(["synth", "scan", "--seed", "3", "--out", str(folder / "scan.ply"), "--gt", str(folder / "gt.ply")])
-    assert exit_info.value.code == 0
-    return folder / "scan.ply", folder / "gt.ply"
 
 
 @pytest.fixture(scope="module")
