@@ -14,7 +14,7 @@ from statfit.build import build_model
 from statfit.errors import StatfitError
 from statfit.importers import cache, ict, import_model
 from statfit.importers.safe_pickle import load_pickle
-from statfit.model import load_model, save_model
+from statfit.model import load_model, save_model, units_guess
 from conftest import ICT_DIR
 
 
@@ -211,3 +211,27 @@ def test_obj_reader_keeps_file_order(tmp_path):
     read, faces = ict.read_obj(tmp_path / "m.obj")
     np.testing.assert_allclose(read, vertices, rtol=1e-8)
     np.testing.assert_array_equal(faces, [[6, 0, 3], [1, 2, 5]])
+
+
+@pytest.mark.parametrize("extent,guess", [(0.25, "metres (head-sized)"), (1.8, "metres (body-sized)"),
+                                          (25.0, "centimetres (head-sized)"), (220.0, "millimetres (head-sized)"),
+                                          (4.0, "unknown")])
+def test_units_guess(extent, guess):
+    assert units_guess(np.array([[0.0, 0.0, 0.0], [extent, extent / 2, extent / 3]])) == guess
+
+
+@pytest.mark.parametrize("kind", ["csr", "coo"])
+def test_other_sparse_matrices_in_pickles(tmp_path, kind):
+    matrix = scipy.sparse.random(4, 6, density=0.4, format=kind, random_state=1)
+    (tmp_path / "m.pkl").write_bytes(pickle.dumps({"J_regressor": matrix}, protocol=2))
+    np.testing.assert_array_equal(load_pickle(tmp_path / "m.pkl")["J_regressor"].toarray(), matrix.toarray())
+
+
+@pytest.mark.parametrize("text,message", [("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 4\n", "does not exist"),
+                                          ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 x\n", "not an integer"),
+                                          ("v 0 0\nf 1 2 3\n", "not three numbers"),
+                                          ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2\n", "face with 2 vertices")])
+def test_broken_ict_meshes_are_refused(tmp_path, text, message):
+    (tmp_path / "generic_neutral_mesh.obj").write_text(text)
+    with pytest.raises(StatfitError, match=message):
+        import_model(tmp_path)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import h5py
 import numpy as np
 
 from statfit.errors import StatfitError
@@ -19,8 +20,8 @@ HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 
 
 def _dataset(handle, key: str, path: Path) -> np.ndarray:
-    if key not in handle:
-        raise StatfitError(f"{path}: not a Basel Face Model file (no {key} in the HDF5 file)")
+    if not isinstance(handle.get(key), h5py.Dataset):
+        raise StatfitError(f"{path}: not a Basel Face Model file (no {key} dataset in the HDF5 file)")
     return np.asarray(handle[key][()])
 
 
@@ -42,8 +43,6 @@ def _directions(handle, group: str, n: int, k: int | None, path: Path) -> np.nda
 def import_bfm(path: str | Path, *, k: int | None = None, expressions: bool = False) -> StatModel:
     """A StatModel from a BFM 2017 h5 file: the shape directions (first ``k``), plus the expression
     directions with ``expressions``."""
-    import h5py
-
     path = Path(path)
     try:
         handle = h5py.File(path, "r")

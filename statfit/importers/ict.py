@@ -42,13 +42,18 @@ def read_obj(path: Path, with_faces: bool = True) -> tuple[np.ndarray, np.ndarra
         raise StatfitError(f"cannot read {path}: {exc.strerror}") from None
     try:
         vertices = np.array([line.split()[1:4] for line in lines if line.startswith("v ")], dtype=np.float64)
-    except ValueError:
+    except ValueError:  # ragged rows or text
         raise StatfitError(f"{path}: a vertex line is not three numbers") from None
-    if vertices.ndim != 2 or vertices.shape[1] != 3 or not len(vertices):
+    if not vertices.size:
         raise StatfitError(f"{path} has no vertices")
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise StatfitError(f"{path}: a vertex line is not three numbers")
     if not with_faces:
         return vertices, None
-    polygons = [[int(token.split("/")[0]) for token in line.split()[1:]] for line in lines if line.startswith("f ")]
+    try:
+        polygons = [[int(token.split("/")[0]) for token in line.split()[1:]] for line in lines if line.startswith("f ")]
+    except ValueError:
+        raise StatfitError(f"{path}: a face line has an index that is not an integer") from None
     triangles = []
     for size in sorted({len(p) for p in polygons}):
         if size < 3:
@@ -60,7 +65,10 @@ def read_obj(path: Path, with_faces: bool = True) -> tuple[np.ndarray, np.ndarra
                                   axis=2).reshape(-1, 3))
     if not triangles:
         raise StatfitError(f"{path} has no faces")
-    return vertices, np.concatenate(triangles)
+    faces = np.concatenate(triangles)
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise StatfitError(f"{path}: a face refers to a vertex that does not exist ({len(vertices)} vertices)")
+    return vertices, faces
 
 
 def identity_files(folder: Path) -> list[Path]:

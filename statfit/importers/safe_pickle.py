@@ -96,7 +96,10 @@ class _RestrictedUnpickler(pickle.Unpickler):
 def load_pickle(path: str | Path) -> Any:
     """The object in the pickle at ``path`` with chumpy arrays as numpy arrays and sparse matrices
     as scipy matrices; arbitrary code in the pickle is refused (StatfitError), never run."""
-    data = Path(path).read_bytes()
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise StatfitError(f"cannot read {path}: {exc.strerror}") from None
     try:
         loaded = _RestrictedUnpickler(io.BytesIO(data), encoding="latin1").load()
     except StatfitError as exc:
