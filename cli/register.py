@@ -12,7 +12,7 @@ from statfit.io.jsonlog import JsonLinesLog, versions
 from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_points, write_atomic
 from statfit.io.landmarks import read_landmarks
 from statfit.methods import resolve
-from statfit.model import region_vertices
+from statfit.model import region_triangles
 from statfit.register import landmark_alignment, register as fit_scan, resolve_device
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
                                 LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
@@ -103,7 +103,7 @@ def register(
     model = open_model(model_path, k)
     scan_landmarks = read_landmarks(landmarks) if landmarks is not None else None
     if region is not None:
-        region_vertices(model, region)
+        region_triangles(model, region)
     if scan_landmarks is not None:
         landmark_alignment(model, scan_landmarks)
     if scan_landmarks is not None and len(targets) > 1:

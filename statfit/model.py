@@ -141,6 +141,14 @@ def region_vertices(model: StatModel, name: str) -> np.ndarray:
     return model.regions[name]
 
 
+def region_triangles(model: StatModel, name: str) -> np.ndarray:
+    """(F,) bool: the triangles whose three vertices all lie in the region ``name``."""
+    mask = np.isin(model.faces, region_vertices(model, name)).all(axis=1)
+    if not mask.any():
+        raise StatfitError(f"the region {name!r} contains no whole triangle")
+    return mask
+
+
 # Largest bounding-box side of a head (0.1–0.5 m) or a body (1–2.5 m) in each unit.
 _UNIT_RANGES = (("metres (head-sized)", 0.1, 0.5), ("metres (body-sized)", 1.0, 2.5),
                 ("centimetres (head-sized)", 10.0, 50.0), ("millimetres (head-sized)", 100.0, 500.0))

@@ -15,7 +15,7 @@ from statfit.errors import StatfitError
 from statfit.fit import StageTimer, run_fit
 from statfit.frame import Frame
 from statfit.methods import FitSpace, Settings, build, resolve
-from statfit.model import StatModel, region_vertices
+from statfit.model import StatModel, region_triangles
 from statfit.objectives.scan import ScanObjective
 
 ALIGNMENTS = ("none", "rigid", "similarity")
@@ -136,12 +136,7 @@ def register(model: StatModel, points: np.ndarray, method: str = "default", *, p
     torch_device = resolve_device(device)
     torch.manual_seed(seed)
     started = time.perf_counter()
-    region_faces = None
-    if region is not None:
-        mask = np.isin(model.faces, region_vertices(model, region)).all(axis=1)
-        if not mask.any():
-            raise StatfitError(f"the region {region!r} contains no whole triangle")
-        region_faces = torch.as_tensor(mask, device=torch_device)
+    region_faces = None if region is None else torch.as_tensor(region_triangles(model, region), device=torch_device)
     transform = prealign(model, points, align, landmarks)
     frame = Frame.of(model.template)
     space = fit_space(model, frame, torch_device, dtype)
