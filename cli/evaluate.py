@@ -36,6 +36,7 @@ def evaluate(
     """Per-vertex errors ‖fit − gt‖ over all / observed / unobserved vertices, and the distance of
     observed ground-truth vertices to the fitted surface.
 
+        \b
         statfit eval fit.ply gt.ply --scan scan.ply --json
         statfit eval fit.ply gt.ply --normals normals.exr --camera camera.json
         statfit eval fit.ply gt.ply --model flame.npz --region face

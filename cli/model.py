@@ -56,6 +56,7 @@ def import_(
     the standard deviations, region_<name>). No chumpy is needed for FLAME pickles, and nothing in a
     pickle is executed.
 
+        \b
         statfit model import generic_model.pkl -o flame.npz
         statfit model import SMPLX_NEUTRAL.npz -o smplx.npz --expressions
         statfit model import ICT-FaceKit/FaceXModel -o ict.npz --region face+head

@@ -78,6 +78,7 @@ def register(
 
     The output mesh has the template's topology and vertex order. Example:
 
+        \b
         statfit register scan.ply --model model.npz --method statistical --out fit.ply --log fit.jsonl
         statfit register scan.ply --model generic_model.pkl --region face --landmarks scan_landmarks.txt
     """
