@@ -51,21 +51,24 @@ def import_(
     region: str = typer.Option(None, "--region", help="ICT-FaceKit only: geometries to keep, joined by '+' "
                                "(face, head, mouth_socket, eye_socket_left, ..., teeth, eyeball_left, ...). "
                                "Default: face+head. Each is stored as region_<name>.", show_default=False),
+    masks: Path = typer.Option(None, "--masks", help="Named vertex masks to store as regions (region_<name>), "
+                               "e.g. FLAME_masks.pkl (face, forehead, eye_region, lips, scalp, neck, ...): a pickle "
+                               "or npz of name → vertex indices.", show_default=False),
 ) -> None:
     """Convert a model from its original format to statfit's npz (v_template, faces, shapedirs scaled by
     the standard deviations, region_<name>). No chumpy is needed for FLAME pickles, and nothing in a
     pickle is executed.
 
         \b
-        statfit model import generic_model.pkl -o flame.npz
+        statfit model import generic_model.pkl -o flame.npz --masks FLAME_masks.pkl
         statfit model import SMPLX_NEUTRAL.npz -o smplx.npz --expressions
         statfit model import ICT-FaceKit/FaceXModel -o ict.npz --region face+head
         statfit model import model2017-1_bfm_nomouth.h5 -o bfm.npz --k 100
 
     Any command's --model also takes the original file directly (imported once, cached).
     """
-    _check_output(out, source)
-    model = import_model(source, k=k, expressions=expressions, region=region)
+    _check_output(out, source, *([masks] if masks else []))
+    model = import_model(source, k=k, expressions=expressions, region=region, masks=masks)
     save_model(model, out)
     print(f"{out}: {_summary(model)} (from {model.source})")
 

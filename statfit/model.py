@@ -9,6 +9,8 @@ The basis used by the filters is derived by SVD: ``shapedirs`` flattened to (3N,
 """
 from __future__ import annotations
 
+import dataclasses
+import re
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -131,6 +133,15 @@ def model_arrays(model: StatModel) -> dict[str, np.ndarray]:
 def save_model(model: StatModel, path: str | Path) -> None:
     """Write ``model`` as an npz in the contract, atomically, with reproducible bytes."""
     write_atomic(path, npz_bytes(model_arrays(model)))
+
+
+def with_regions(model: StatModel, regions: dict[str, np.ndarray], source: str = "regions") -> StatModel:
+    """``model`` with named vertex subsets added (or replaced), validated as vertex indices."""
+    for name in regions:
+        if not re.fullmatch(r"[A-Za-z0-9_]+", name):
+            raise StatfitError(f"{source}: region name {name!r} must be letters, digits and underscores")
+    checked = {name: _index_array(index, model.num_vertices, f"{source}: {name}") for name, index in regions.items()}
+    return dataclasses.replace(model, regions={**model.regions, **checked})
 
 
 def region_vertices(model: StatModel, name: str) -> np.ndarray:

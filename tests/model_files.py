@@ -99,6 +99,14 @@ def write_flame_pickle(path: Path, arrays: dict, style: str = "2020") -> Path:
     return path
 
 
+def write_flame_masks(path: Path, masks: dict[str, np.ndarray]) -> Path:
+    """FLAME_masks.pkl layout: a Python-2 pickle of a dict region name → vertex index array."""
+    buffer = io.BytesIO()
+    Python2Pickler(buffer, protocol=2).dump(masks)
+    path.write_bytes(buffer.getvalue().replace(*next(iter(OLD_MODULES.items()))))
+    return path
+
+
 def write_bfm_h5(path: Path, mean: np.ndarray, basis: np.ndarray, variance: np.ndarray, faces: np.ndarray,
                  expression: tuple[np.ndarray, np.ndarray] | None = None) -> Path:
     """BFM 2017 layout: float32 shape/model/{mean (3N,), pcaBasis (3N, K), pcaVariance (K,)},

@@ -13,7 +13,7 @@ import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from model_files import random_smpl_arrays, write_flame_pickle
+from model_files import random_smpl_arrays, write_flame_masks, write_flame_pickle
 from statfit.model import default_model_path, load_model, model_arrays
 from test_cli import FAST, run, scan_files  # noqa: F401 (scan_files is a fixture)
 
@@ -38,10 +38,13 @@ def mean_error(fit: Path, gt: Path, vertices: np.ndarray | None = None) -> float
 
 
 def test_import_info_and_fit_with_the_original_file(flame_pickle, scan_files, tmp_path, capsys, embedded_model):
-    code, out, _ = run(["model", "import", str(flame_pickle), "-o", str(tmp_path / "flame.npz")], capsys)
+    masks = write_flame_masks(tmp_path / "FLAME_masks.pkl", {"face": embedded_model.regions["face"]})
+    code, out, _ = run(["model", "import", str(flame_pickle), "--masks", str(masks), "-o", str(tmp_path / "flame.npz")],
+                       capsys)
     assert code == 0 and f"{embedded_model.num_vertices} vertices" in out
     imported = load_model(tmp_path / "flame.npz")
     np.testing.assert_allclose(imported.std, embedded_model.std, rtol=1e-8)
+    np.testing.assert_array_equal(imported.regions["face"], embedded_model.regions["face"])
     info = [json.loads(run(["model", "info", str(p), "--json"], capsys)[1]) for p in (tmp_path / "flame.npz", flame_pickle)]
     assert info[0]["modes"] == info[1]["modes"] == embedded_model.num_modes
     assert info[0]["units_guess"] == "metres (head-sized)"
@@ -173,6 +176,9 @@ BAD_INPUTS = {
                                                      "shapedirs": np.ones((3, 3, 2))})), "--k", "5", "-o", str(t / "out.npz")],
     "import region of a non-ICT model": lambda t, s: ["model", "import", str(_no_landmarks_model(t / "m.npz")), "--region",
                                                       "face", "-o", str(t / "out.npz")],
+    "masks outside the model": lambda t, s: ["model", "import", str(_no_landmarks_model(t / "m.npz")), "--masks",
+                                             str(write_flame_masks(t / "masks.pkl", {"face": np.array([10**6])})),
+                                             "-o", str(t / "out.npz")],
     "malicious pickle imported": lambda t, s: ["model", "import", str(_malicious(t / "evil.pkl")), "-o", str(t / "out.npz")],
     "malicious pickle as --model": lambda t, s: ["register", str(s), "--model", str(_malicious(t / "evil.pkl")),
                                                  "-o", str(t / "fit.ply")],

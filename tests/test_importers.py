@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import scipy.sparse
 
-from model_files import (random_smpl_arrays, write_bfm_h5, write_flame_pickle, write_ict_folder, write_obj)
+from model_files import (random_smpl_arrays, write_bfm_h5, write_flame_masks, write_flame_pickle, write_ict_folder,
+                         write_obj)
 from statfit.build import build_model
 from statfit.errors import StatfitError
 from statfit.importers import cache, ict, import_model
@@ -258,3 +259,21 @@ def test_every_format_round_trips_through_the_npz_contract(tmp_path, rng, smpl_a
     np.testing.assert_array_equal(again.faces, model.faces)
     assert again.regions.keys() == model.regions.keys()
     assert_same_distribution(again, (model.basis * model.std).reshape(model.num_vertices, 3, -1))
+
+
+def test_flame_masks_become_regions(tmp_path, smpl_arrays):
+    masks = {"face": np.arange(10, 40), "lips": np.array([12, 13, 14])}
+    model = import_model(write_flame_pickle(tmp_path / "generic_model.pkl", smpl_arrays),
+                         masks=write_flame_masks(tmp_path / "FLAME_masks.pkl", masks))
+    assert model.regions.keys() == masks.keys()
+    for name, index in masks.items():
+        np.testing.assert_array_equal(model.regions[name], index)
+
+
+@pytest.mark.parametrize("masks,message", [({"face": np.array([0, 60])}, "face must be vertex indices in"),
+                                           ({"face/x": np.array([0])}, "letters, digits"),
+                                           ([np.arange(3)], "expected a dict")])
+def test_bad_masks_are_refused(tmp_path, smpl_arrays, masks, message):
+    model = write_flame_pickle(tmp_path / "generic_model.pkl", smpl_arrays)
+    with pytest.raises(StatfitError, match=message):
+        import_model(model, masks=write_flame_masks(tmp_path / "FLAME_masks.pkl", masks))
