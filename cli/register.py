@@ -101,14 +101,14 @@ def register(
     for scan in scans:
         if scan != "-" and not Path(scan).is_file():
             raise StatfitError(f"scan not found: {scan}")
+    if landmarks is not None and len(targets) > 1:
+        raise StatfitError("--landmarks belong to one scan; fit several scans one by one")
     model = open_model(model_path, k)
     scan_landmarks = read_landmarks(landmarks) if landmarks is not None else None
     if region is not None:
         region_triangles(model, region)
     if scan_landmarks is not None:
         landmark_alignment(model, scan_landmarks)
-    if scan_landmarks is not None and len(targets) > 1:
-        raise StatfitError("--landmarks belong to one scan; fit several scans one by one")
     total = sum(s.iterations for s in stages)
     for scan, target, log_path in targets:
         points = read_points(scan)

@@ -81,10 +81,9 @@ def landmark_alignment(model: StatModel, landmarks: np.ndarray) -> Similarity:
     if model.landmarks is None:
         raise StatfitError(f"the model {model.source} has no landmarks, so --landmarks cannot be used")
     landmarks = np.asarray(landmarks, dtype=np.float64)
-    if landmarks.ndim != 2 or landmarks.shape != (model.landmarks.size, 3):
+    if landmarks.shape != (model.landmarks.size, 3):
         raise StatfitError(f"expected {model.landmarks.size} landmarks (one x y z row per model landmark, NaN "
-                           f"for a missing one), got {landmarks.shape[0] if landmarks.ndim == 2 else 'no'} rows"
-                           + (f" of {landmarks.shape[1]} values" if landmarks.ndim == 2 and landmarks.shape[1] != 3 else ""))
+                           f"for a missing one), got an array of shape {landmarks.shape}")
     present = np.isfinite(landmarks).all(axis=1)
     source = model.template[model.landmarks[present]]
     if present.sum() < 3 or np.linalg.matrix_rank(source - source.mean(axis=0), tol=1e-9 * np.ptp(source)) < 2:
