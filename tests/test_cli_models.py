@@ -9,6 +9,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+import torch
 import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
@@ -16,6 +17,13 @@ from scipy.spatial.transform import Rotation
 from model_files import random_smpl_arrays, write_flame_masks, write_flame_pickle
 from statfit.model import default_model_path, load_model, model_arrays
 from test_cli import FAST, run, scan_files  # noqa: F401 (scan_files is a fixture)
+
+
+@pytest.fixture(autouse=True)
+def _threads():
+    """One torch thread (overrides conftest's two): with the second core busy, two threads made these
+    fits 4× slower (77 s vs 18 s for the three model-tooling test files, measured)."""
+    torch.set_num_threads(1)
 
 
 @pytest.fixture(autouse=True)

@@ -15,7 +15,7 @@ from statfit.model import model_arrays, region_triangles
 from statfit.objectives.normals import NormalMapObjective
 from statfit.synth import camera_for_view, render_target
 from test_cli import run
-from test_cli_models import mean_error
+from test_cli_models import _threads, mean_error  # noqa: F401 (_threads: one torch thread here too)
 
 
 def test_region_normal_term_ignores_vertices_away_from_the_region(embedded_model):
