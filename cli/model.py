@@ -54,6 +54,9 @@ def import_(
     masks: Path = typer.Option(None, "--masks", help="Named vertex masks to store as regions (region_<name>), "
                                "e.g. FLAME_masks.pkl (face, forehead, eye_region, lips, scalp, neck, ...): a pickle "
                                "or npz of name → vertex indices.", show_default=False),
+    landmarks: Path = typer.Option(None, "--landmarks", help="Text file of landmark vertex indices (in the "
+                                   "imported mesh's numbering), stored as the model's landmarks for "
+                                   "register --landmarks.", show_default=False),
 ) -> None:
     """Convert a model from its original format to statfit's npz (v_template, faces, shapedirs scaled by
     the standard deviations, region_<name>). No chumpy is needed for FLAME pickles, and nothing in a
@@ -67,8 +70,8 @@ def import_(
 
     Any command's --model also takes the original file directly (imported once, cached).
     """
-    _check_output(out, source, *([masks] if masks else []))
-    model = import_model(source, k=k, expressions=expressions, region=region, masks=masks)
+    _check_output(out, source, *[p for p in (masks, landmarks) if p is not None])
+    model = import_model(source, k=k, expressions=expressions, region=region, masks=masks, landmarks=landmarks)
     save_model(model, out)
     print(f"{out}: {_summary(model)} (from {model.source})")
 

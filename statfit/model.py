@@ -144,6 +144,11 @@ def with_regions(model: StatModel, regions: dict[str, np.ndarray], source: str =
     return dataclasses.replace(model, regions={**model.regions, **checked})
 
 
+def with_landmarks(model: StatModel, indices: np.ndarray, source: str = "landmarks") -> StatModel:
+    """``model`` with its landmark vertex indices (L,) set, validated."""
+    return dataclasses.replace(model, landmarks=_index_array(indices, model.num_vertices, source))
+
+
 def region_vertices(model: StatModel, name: str) -> np.ndarray:
     """The vertex indices of the region ``name``; a clear error lists the model's regions."""
     if name not in model.regions:

@@ -47,12 +47,14 @@ def mean_error(fit: Path, gt: Path, vertices: np.ndarray | None = None) -> float
 
 def test_import_info_and_fit_with_the_original_file(flame_pickle, scan_files, tmp_path, capsys, embedded_model):
     masks = write_flame_masks(tmp_path / "FLAME_masks.pkl", {"face": embedded_model.regions["face"]})
-    code, out, _ = run(["model", "import", str(flame_pickle), "--masks", str(masks), "-o", str(tmp_path / "flame.npz")],
-                       capsys)
+    np.savetxt(tmp_path / "landmarks.txt", embedded_model.landmarks, fmt="%d")
+    code, out, _ = run(["model", "import", str(flame_pickle), "--masks", str(masks), "--landmarks",
+                        str(tmp_path / "landmarks.txt"), "-o", str(tmp_path / "flame.npz")], capsys)
     assert code == 0 and f"{embedded_model.num_vertices} vertices" in out
     imported = load_model(tmp_path / "flame.npz")
     np.testing.assert_allclose(imported.std, embedded_model.std, rtol=1e-8)
     np.testing.assert_array_equal(imported.regions["face"], embedded_model.regions["face"])
+    np.testing.assert_array_equal(imported.landmarks, embedded_model.landmarks)
     info = [json.loads(run(["model", "info", str(p), "--json"], capsys)[1]) for p in (tmp_path / "flame.npz", flame_pickle)]
     assert info[0]["modes"] == info[1]["modes"] == embedded_model.num_modes
     assert info[0]["units_guess"] == "metres (head-sized)"
@@ -187,6 +189,9 @@ BAD_INPUTS = {
     "masks outside the model": lambda t, s: ["model", "import", str(_no_landmarks_model(t / "m.npz")), "--masks",
                                              str(write_flame_masks(t / "masks.pkl", {"face": np.array([10**6])})),
                                              "-o", str(t / "out.npz")],
+    "landmark indices outside the model": lambda t, s: ["model", "import", str(_no_landmarks_model(t / "m.npz")),
+                                                        "--landmarks", str((t / "l.txt").write_text("1 2 99999") and t / "l.txt"),
+                                                        "-o", str(t / "out.npz")],
     "malicious pickle imported": lambda t, s: ["model", "import", str(_malicious(t / "evil.pkl")), "-o", str(t / "out.npz")],
     "malicious pickle as --model": lambda t, s: ["register", str(s), "--model", str(_malicious(t / "evil.pkl")),
                                                  "-o", str(t / "fit.ply")],

@@ -277,3 +277,13 @@ def test_bad_masks_are_refused(tmp_path, smpl_arrays, masks, message):
     model = write_flame_pickle(tmp_path / "generic_model.pkl", smpl_arrays)
     with pytest.raises(StatfitError, match=message):
         import_model(model, masks=write_flame_masks(tmp_path / "FLAME_masks.pkl", masks))
+
+
+def test_landmark_indices_are_stored(tmp_path, smpl_arrays):
+    (tmp_path / "lmk.txt").write_text("# FLAME landmark vertices\n3 17, 42\n59\n")
+    model = import_model(write_flame_pickle(tmp_path / "generic_model.pkl", smpl_arrays), landmarks=tmp_path / "lmk.txt")
+    np.testing.assert_array_equal(model.landmarks, [3, 17, 42, 59])
+    for text, message in (("3 60\n", r"must be vertex indices in \[0, 60\)"), ("3 -1\n", "non-negative integers")):
+        (tmp_path / "lmk.txt").write_text(text)
+        with pytest.raises(StatfitError, match=message):
+            import_model(tmp_path / "generic_model.pkl", landmarks=tmp_path / "lmk.txt")

@@ -12,7 +12,8 @@ from statfit.importers import smpl
 from statfit.importers.bfm import HDF5_SIGNATURE, import_bfm
 from statfit.importers.ict import NEUTRAL, import_ict
 from statfit.importers.masks import read_masks
-from statfit.model import StatModel, load_model, with_regions
+from statfit.io.landmarks import read_landmark_indices
+from statfit.model import StatModel, load_model, with_landmarks, with_regions
 
 CONTRACT_KEYS = ("v_template", "faces", "shapedirs")
 FORMATS = "a statfit model npz, a FLAME/SMPL-X/SMPL pickle or npz, an ICT-FaceKit folder or a BFM 2017 h5 file"
@@ -47,13 +48,19 @@ def model_format(path: str | Path) -> str:
 
 
 def import_model(path: str | Path, *, k: int | None = None, expressions: bool = False,
-                 region: str | None = None, masks: str | Path | None = None) -> StatModel:
+                 region: str | None = None, masks: str | Path | None = None,
+                 landmarks: str | Path | None = None) -> StatModel:
     """The model at ``path`` in any supported format: the first ``k`` identity directions (all by
     default), the expression directions too with ``expressions`` (FLAME, SMPL-X, BFM), for an
-    ICT-FaceKit folder the geometries named in ``region`` (default ``face+head``), and the named
-    vertex subsets of a ``masks`` file (e.g. FLAME_masks.pkl) as regions."""
+    ICT-FaceKit folder the geometries named in ``region`` (default ``face+head``), the named vertex
+    subsets of a ``masks`` file (e.g. FLAME_masks.pkl) as regions, and the vertex indices of a
+    ``landmarks`` text file as the model's landmarks."""
     model = _import(path, k=k, expressions=expressions, region=region)
-    return model if masks is None else with_regions(model, read_masks(masks), str(masks))
+    if masks is not None:
+        model = with_regions(model, read_masks(masks), str(masks))
+    if landmarks is not None:
+        model = with_landmarks(model, read_landmark_indices(landmarks), f"{landmarks}: landmark indices")
+    return model
 
 
 def _import(path: str | Path, *, k: int | None, expressions: bool, region: str | None) -> StatModel:
