@@ -80,7 +80,7 @@ def register(
 
         \b
         statfit register scan.ply --model model.npz --method statistical --out fit.ply --log fit.jsonl
-        statfit register scan.ply --model generic_model.pkl --region face --landmarks scan_landmarks.txt
+        statfit register scan.ply --model flame.npz --region face --landmarks scan_landmarks.txt
     """
     overrides = setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain)
     if not 0 <= trim < 1:
