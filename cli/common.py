@@ -12,11 +12,14 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from statfit.errors import StatfitError
+from statfit.importers.cache import open_any_model
 from statfit.model import StatModel, default_model_path, load_model
 
 stderr = Console(stderr=True)
 
-ModelOption = typer.Option(None, "--model", "-m", help="Model npz (v_template, faces, shapedirs). "
+ModelOption = typer.Option(None, "--model", "-m", help="Model npz (v_template, faces, shapedirs), or an "
+                           "original model (FLAME/SMPL-X .pkl/.npz, ICT-FaceKit folder, BFM 2017 .h5): imported "
+                           "once and cached in $STATFIT_CACHE_DIR (default ~/.cache/statfit). "
                            "Default: the embedded synthetic head.", show_default=False)
 KOption = typer.Option(None, "--k", help="Use only the first K modes of the model.", show_default=False)
 MethodOption = typer.Option("default", help="default (the measured best pipeline), statistical, hybrid, "
@@ -51,8 +54,9 @@ def setting_overrides(iterations: int | None, lr: float | None, beta: float | No
 
 
 def open_model(path: Path | None, k: int | None = None) -> StatModel:
-    """The model at ``path`` (or the embedded default), truncated to ``k`` modes."""
-    return load_model(path or default_model_path(), k)
+    """The model at ``path`` in any format (imported and cached) or the embedded default, truncated
+    to ``k`` modes."""
+    return open_any_model(path, k=k) if path is not None else load_model(default_model_path(), k)
 
 
 def warn(message: str) -> None:

@@ -13,6 +13,8 @@ from statfit.errors import StatfitError
 from statfit.io.mesh import read_mesh, read_points
 from statfit.io.normalmap import camera_for_map, read_normal_map
 from statfit.metrics import evaluate as evaluate_fit, observed_vertices, visible_vertices
+from statfit.model import region_vertices
+from statfit_cli.common import open_model
 
 
 def evaluate(
@@ -25,13 +27,19 @@ def evaluate(
                                  "ground truth's triangles seen on its mask (needs a camera).", show_default=False),
     camera_path: Path = typer.Option(None, "--camera", help="Camera JSON of --normals (default: the EXR header's).",
                                      show_default=False),
+    region: str = typer.Option(None, "--region", help="Report only the vertices of the model's region NAME "
+                               "(needs --model).", show_default=False),
+    model_path: Path = typer.Option(None, "--model", "-m", help="The model the fit came from (any format "
+                                    "--model takes elsewhere), for --region.", show_default=False),
     json_out: bool = typer.Option(False, "--json", help="Print the report as JSON."),
 ) -> None:
     """Per-vertex errors ‖fit − gt‖ over all / observed / unobserved vertices, and the distance of
     observed ground-truth vertices to the fitted surface.
 
+        \b
         statfit eval fit.ply gt.ply --scan scan.ply --json
         statfit eval fit.ply gt.ply --normals normals.exr --camera camera.json
+        statfit eval fit.ply gt.ply --model flame.npz --region face
     """
     if scan is not None and normals is not None:
         raise StatfitError("give --scan or --normals, not both")
@@ -46,7 +54,7 @@ def evaluate(
         observed = observed_vertices(gt_vertices, read_points(scan))
     elif normals is not None:
         observed = _seen_vertices(gt_vertices, gt_faces, normals, camera_path)
-    report = evaluate_fit(fit_vertices, gt_vertices, faces, observed)
+    report = evaluate_fit(fit_vertices, gt_vertices, faces, observed, _region_mask(model_path, region, len(fit_vertices)))
     if json_out:
         print(json.dumps(report))
         return
@@ -58,6 +66,22 @@ def evaluate(
             table.add_row(name, str(row["count"]), f"{row['mean']:.4g}", f"{row['median']:.4g}",
                           f"{row['max']:.4g}", f"{row['mean_rel']:.4f}")
     Console().print(table)
+
+
+def _region_mask(model_path: Path | None, region: str | None, num_vertices: int) -> np.ndarray | None:
+    """(N,) bool of the region's vertices, or None without --region."""
+    if region is None:
+        if model_path is not None:
+            raise StatfitError("--model goes with --region")
+        return None
+    if model_path is None:
+        raise StatfitError("--region needs --model (the model that holds the region)")
+    model = open_model(model_path)
+    if model.num_vertices != num_vertices:
+        raise StatfitError(f"the model has {model.num_vertices} vertices, the fit {num_vertices}")
+    mask = np.zeros(num_vertices, dtype=bool)
+    mask[region_vertices(model, region)] = True
+    return mask
 
 
 def _seen_vertices(vertices: np.ndarray, faces: np.ndarray, normals: Path, camera_path: Path | None) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""``statfit model``: inspect model files."""
+"""``statfit model``: import, build, inspect and sample statistical models."""
 from __future__ import annotations
 
 import json
@@ -9,26 +9,136 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from statfit_cli.common import open_model
+from statfit.build import build_model_from_files
+from statfit.errors import StatfitError
+from statfit.importers import import_model
+from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, write_atomic
+from statfit.model import StatModel, save_model, units_guess
+from statfit_cli.common import SeedOption, open_model
 
-app = typer.Typer(help="Inspect statistical models.", no_args_is_help=True)
+app = typer.Typer(help="Import, build, inspect and sample statistical models.", no_args_is_help=True)
+
+ANY_MODEL = ("a model npz, a FLAME/SMPL-X/SMPL .pkl or .npz, an ICT-FaceKit FaceXModel folder or a "
+             "Basel Face Model 2017 .h5")
+EXPLAINED_AT = (1, 5, 10, 20, 50, 100, 200, 300)
+
+
+def _explained(cumulative: np.ndarray, with_last: bool) -> dict[str, float]:
+    """Cumulative variance explained at a few k (and at the last mode with ``with_last``)."""
+    shown = [k for k in EXPLAINED_AT if k <= len(cumulative)] + [len(cumulative)] * with_last
+    return {str(k): float(cumulative[k - 1]) for k in shown}
+
+
+def _check_output(out: Path, *inputs: Path) -> None:
+    check_writable(out)
+    if any(out.resolve() == p.resolve() for p in inputs):
+        raise StatfitError(f"the output {out} would overwrite an input; choose another path")
+
+
+def _summary(model: StatModel) -> str:
+    return f"{model.num_vertices} vertices, {len(model.faces)} faces, {model.num_modes} modes" + \
+        (f", regions {'+'.join(model.regions)}" if model.regions else "")
+
+
+@app.command("import")
+def import_(
+    source: Path = typer.Argument(..., help=f"The model to convert: {ANY_MODEL}.", show_default=False),
+    out: Path = typer.Option(..., "--out", "-o", help="Model npz to write.", show_default=False),
+    k: int = typer.Option(None, "--k", help="Keep the first K identity directions (FLAME/SMPL-X: of 300; "
+                          "ICT: identity meshes; BFM: principal components). Default: all.", show_default=False),
+    expressions: bool = typer.Option(False, "--expressions", help="Also keep the expression directions "
+                                     "(FLAME, SMPL-X: shapedirs after the 300 identity ones; BFM: the expression model)."),
+    region: str = typer.Option(None, "--region", help="ICT-FaceKit only: geometries to keep, joined by '+' "
+                               "(face, head, mouth_socket, eye_socket_left, ..., teeth, eyeball_left, ...). "
+                               "Default: face+head. Each is stored as region_<name>.", show_default=False),
+    masks: Path = typer.Option(None, "--masks", help="Named vertex masks to store as regions (region_<name>), "
+                               "e.g. FLAME_masks.pkl (face, forehead, eye_region, lips, scalp, neck, ...): a pickle "
+                               "or npz of name → vertex indices.", show_default=False),
+    landmarks: Path = typer.Option(None, "--landmarks", help="Text file of landmark vertex indices (in the "
+                                   "imported mesh's numbering), stored as the model's landmarks for "
+                                   "register --landmarks.", show_default=False),
+) -> None:
+    """Convert a model from its original format to statfit's npz (v_template, faces, shapedirs scaled by
+    the standard deviations, region_<name>). No chumpy is needed for FLAME pickles, and nothing in a
+    pickle is executed.
+
+        \b
+        statfit model import generic_model.pkl -o flame.npz --masks FLAME_masks.pkl
+        statfit model import SMPLX_NEUTRAL.npz -o smplx.npz --expressions
+        statfit model import ICT-FaceKit/FaceXModel -o ict.npz --region face+head
+        statfit model import model2017-1_bfm_nomouth.h5 -o bfm.npz --k 100
+
+    Any command's --model also takes the original file directly (imported once, cached).
+    """
+    _check_output(out, source, *[p for p in (masks, landmarks) if p is not None])
+    model = import_model(source, k=k, expressions=expressions, region=region, masks=masks, landmarks=landmarks)
+    save_model(model, out)
+    print(f"{out}: {_summary(model)} (from {model.source})")
+
+
+@app.command("build")
+def build(
+    meshes: list[Path] = typer.Argument(..., help="Registered meshes: same vertex count, faces and vertex "
+                                        "order (PLY, OBJ, STL, OFF).", show_default=False),
+    out: Path = typer.Option(..., "--out", "-o", help="Model npz to write.", show_default=False),
+    k: int = typer.Option(None, "--k", help="Principal components to keep. Default: all (meshes − 1).",
+                          show_default=False),
+    seed: int = typer.Option(0, help="Seed of the randomised SVD (used for many large meshes)."),
+    json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
+) -> None:
+    """Build a PCA model from meshes in correspondence (e.g. registrations of many scans):
+    template = mean mesh, shapedirs = principal directions × standard deviations.
+
+        statfit model build registered/*.ply -o mine.npz --k 50
+    """
+    _check_output(out, *meshes)
+    built = build_model_from_files(meshes, k, seed=seed)
+    save_model(built.model, out)
+    report = {"output": str(out), "meshes": len(meshes), "vertices": built.model.num_vertices,
+              "modes": built.model.num_modes, "variance_explained": _explained(built.variance_explained, True)}
+    if json_out:
+        print(json.dumps(report))
+        return
+    shares = ", ".join(f"{key}: {value:.1%}" for key, value in report["variance_explained"].items())
+    print(f"{out}: {_summary(built.model)} from {len(meshes)} meshes; variance explained by the first k modes: {shares}")
+
+
+@app.command("sample")
+def sample(
+    model_path: Path = typer.Argument(None, help=f"The model: {ANY_MODEL}. Default: the embedded synthetic head.",
+                                      show_default=False),
+    out: str = typer.Option(..., "--out", "-o", help="Mesh to write (.ply or .obj; '-' for PLY on stdout).",
+                            show_default=False),
+    sigma: float = typer.Option(1.0, help="Coefficients ~ N(0, sigma²) in standard deviations; 0 gives the template."),
+    seed: int = SeedOption,
+) -> None:
+    """A random shape from the model, in the model's topology and units.
+
+        statfit model sample flame.npz --sigma 2 --seed 1 -o sample.ply
+    """
+    if not np.isfinite(sigma) or sigma < 0:
+        raise StatfitError("--sigma must be a finite number ≥ 0")
+    check_writable(out)
+    model = open_model(model_path)
+    vertices = model.sample(np.random.default_rng(seed), sigma)
+    write_atomic(out, mesh_bytes(vertices, model.faces, mesh_format(out)))
 
 
 @app.command("info")
 def info(
-    model_path: Path = typer.Argument(None, help="Model npz. Default: the embedded synthetic head.",
+    model_path: Path = typer.Argument(None, help=f"The model: {ANY_MODEL}. Default: the embedded synthetic head.",
                                       show_default=False),
     json_out: bool = typer.Option(False, "--json", help="Print as JSON."),
 ) -> None:
-    """Vertices, faces, modes, variance explained and bounding box of a model."""
+    """Vertices, faces, modes, variance explained, bounding box and a guess of the units of a model."""
     model = open_model(model_path)
-    explained = model.variance_explained()
     extent = np.ptp(model.template, axis=0)
     report = {
         "model": model.source, "vertices": model.num_vertices, "faces": int(len(model.faces)),
         "modes": model.num_modes, "std_first": float(model.std[0]), "std_last": float(model.std[-1]),
-        "variance_explained": {str(k): float(explained[k - 1]) for k in (1, 5, 10, 20, 50, 100) if k <= model.num_modes},
-        "bbox_extent": extent.tolist(), "landmarks": 0 if model.landmarks is None else int(model.landmarks.size),
+        "variance_explained": _explained(model.variance_explained(), False),
+        "bbox_extent": extent.tolist(), "units_guess": units_guess(model.template),
+        "landmarks": 0 if model.landmarks is None else int(model.landmarks.size),
         "regions": {name: int(idx.size) for name, idx in model.regions.items()},
     }
     if json_out:

@@ -10,8 +10,10 @@ import typer
 from statfit.errors import StatfitError
 from statfit.io.jsonlog import JsonLinesLog, versions
 from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_points, write_atomic
+from statfit.io.landmarks import read_landmarks
 from statfit.methods import resolve
-from statfit.register import register as fit_scan, resolve_device
+from statfit.model import region_triangles
+from statfit.register import landmark_alignment, register as fit_scan, resolve_device
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
                                 LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
                                 PowerOption, PresetOption, QuietOption, SeedOption, open_model, printed_warnings,
@@ -51,6 +53,13 @@ def register(
     log: Path = LogOption,
     align: str = typer.Option("none", help="Pre-alignment: none, rigid or similarity (ICP; similarity also "
                               "estimates scale, e.g. for a scan in other units)."),
+    region: str = typer.Option(None, "--region", help="Fit only the model's region NAME (a region_NAME array in "
+                               "the npz, e.g. face): scan points closest to other parts are ignored; the "
+                               "rest of the mesh follows the model's prior.", show_default=False),
+    landmarks: Path = typer.Option(None, "--landmarks", help="Text file of the scan's landmarks, one 'x y z' row "
+                                   "per model landmark in the model's order ('nan nan nan' if missing): a "
+                                   "similarity pre-alignment for scans in any pose, scale or units (refined by "
+                                   "--align rigid/similarity if given).", show_default=False),
     device: str = DeviceOption,
     seed: int = SeedOption,
     iterations: int = IterationsOption,
@@ -69,7 +78,9 @@ def register(
 
     The output mesh has the template's topology and vertex order. Example:
 
+        \b
         statfit register scan.ply --model model.npz --method statistical --out fit.ply --log fit.jsonl
+        statfit register scan.ply --model flame.npz --region face --landmarks scan_landmarks.txt
     """
     overrides = setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain)
     if not 0 <= trim < 1:
@@ -90,7 +101,14 @@ def register(
     for scan in scans:
         if scan != "-" and not Path(scan).is_file():
             raise StatfitError(f"scan not found: {scan}")
+    if landmarks is not None and len(targets) > 1:
+        raise StatfitError("--landmarks belong to one scan; fit several scans one by one")
     model = open_model(model_path, k)
+    scan_landmarks = read_landmarks(landmarks) if landmarks is not None else None
+    if region is not None:
+        region_triangles(model, region)
+    if scan_landmarks is not None:
+        landmark_alignment(model, scan_landmarks)
     total = sum(s.iterations for s in stages)
     for scan, target, log_path in targets:
         points = read_points(scan)
@@ -99,7 +117,8 @@ def register(
         record.write("header", command="register", method=method, preset=preset,
                      stages=[s.describe() for s in stages], model=model.source, modes=model.num_modes,
                      input=scan, points=len(points), align=align, device=str(torch_device), seed=seed,
-                     refresh=refresh, trim=trim, versions=versions())
+                     refresh=refresh, trim=trim, region=region, landmarks=str(landmarks) if landmarks else None,
+                     versions=versions())
         with progress_bar(total, Path(scan).name if scan != "-" else "stdin", not quiet) as advance:
             def on_record(iteration: int, terms: dict[str, float]) -> None:
                 advance(iteration, terms)
@@ -107,7 +126,8 @@ def register(
 
             with printed_warnings():
                 result = fit_scan(model, points, stages=stages, align=align, device=str(torch_device),
-                                  refresh_every=refresh, trim=trim, seed=seed, on_record=on_record)
+                                  refresh_every=refresh, trim=trim, seed=seed, on_record=on_record,
+                                  region=region, landmarks=scan_landmarks)
         summary = {"input": scan, "output": target, "method": method, "iterations": total,
                    "final_loss": result.loss, "seconds": result.seconds,
                    "stage_seconds": result.stage_seconds, "model_to_scan": result.transform.as_matrix()}

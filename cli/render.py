@@ -14,6 +14,7 @@ from statfit.io.jsonlog import JsonLinesLog, versions
 from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_mesh, write_atomic
 from statfit.io.normalmap import apply_mask, camera_for_map, read_normal_map
 from statfit.methods import resolve
+from statfit.model import region_triangles
 from statfit.objectives.normals import SILHOUETTE_WEIGHT
 from statfit.register import resolve_device
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
@@ -47,6 +48,9 @@ def render(
     mask: Path = typer.Option(None, help="Mask image (white = foreground) replacing the EXR's alpha.",
                               show_default=False),
     silhouette_weight: float = typer.Option(SILHOUETTE_WEIGHT, help="Weight of the silhouette term (0: off)."),
+    region: str = typer.Option(None, "--region", help="Fit only the model's region NAME (e.g. face): after the "
+                               "alignment, only pixels showing the region's triangles count and the silhouette is "
+                               "not used; the rest of the mesh follows the model's prior.", show_default=False),
     device: str = DeviceOption,
     seed: int = SeedOption,
     iterations: int = IterationsOption,
@@ -81,6 +85,8 @@ def render(
         normal_map = apply_mask(normal_map, read_mask(mask), str(mask))
     camera = camera_for_map(normal_map, camera_path, normal_map_path)
     model = open_model(model_path, k)
+    if region is not None:
+        region_triangles(model, region)
     start = None
     if init is not None:
         start, faces = read_mesh(init)
@@ -93,7 +99,8 @@ def render(
                  model=model.source, modes=model.num_modes, input=str(normal_map_path), camera=camera.to_dict(),
                  pixels=int(normal_map.mask.sum()), align=align, init=str(init) if init else None,
                  normal_space=normal_space, normal_convention=normal_convention,
-                 silhouette_weight=silhouette_weight, device=str(torch_device), seed=seed, versions=versions())
+                 silhouette_weight=silhouette_weight, region=region, device=str(torch_device), seed=seed,
+                 versions=versions())
     with progress_bar(total, normal_map_path.name, not quiet) as advance:
         def on_record(iteration: int, terms: dict[str, float]) -> None:
             advance(iteration, terms)
@@ -103,7 +110,7 @@ def render(
             result = reconstruct(model, normal_map, camera, stages=stages, normal_space=normal_space,
                                  normal_convention=normal_convention, align=align, init=start,
                                  device=str(torch_device), silhouette_weight=silhouette_weight, seed=seed,
-                                 on_record=on_record)
+                                 on_record=on_record, region=region)
     summary = {"input": str(normal_map_path), "output": str(out), "method": method, "iterations": total,
                "final_loss": result.loss, "seconds": result.seconds, "stage_seconds": result.stage_seconds,
                "model_to_world": result.pose.as_matrix()}

@@ -27,7 +27,7 @@ from statfit.fit import StageTimer, run_fit
 from statfit.frame import Frame
 from statfit.io.normalmap import NormalMap
 from statfit.methods import FitSpace, Settings, build, resolve
-from statfit.model import StatModel
+from statfit.model import StatModel, region_triangles
 from statfit.objectives.normals import SILHOUETTE_WEIGHT, NormalMapObjective
 from statfit.pose import fit_pose
 from statfit.register import UNIT_MISMATCH_FACTOR, fit_space, resolve_device
@@ -156,10 +156,13 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
                 dtype: torch.dtype = torch.float32, silhouette_weight: float = SILHOUETTE_WEIGHT, seed: int = 0,
                 on_record: Callable[[int, dict[str, float]], None] | None = None,
                 timer: StageTimer | None = None, stages: tuple[Settings, ...] | None = None,
-                **overrides: Any) -> Reconstruction:
+                region: str | None = None, **overrides: Any) -> Reconstruction:
     """Fit ``model`` to ``normal_map`` seen by ``camera`` with ``method``.
 
     ``init`` (N, 3): start from these vertices (world frame) instead of the template.
+    ``region``: a stored vertex subset; after the alignment (which uses the whole map), the normal
+    term counts only pixels showing the region's triangles and the silhouette is not used (the
+    outline belongs to the whole mesh); the filter and prior still move every vertex.
     ``overrides`` replace the method's settings (see :func:`statfit.methods.resolve`); ``stages``
     replaces the method by an explicit pipeline.
     """
@@ -189,8 +192,9 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
             coarse = NormalMapObjective(*downsampled(target, mask, unit_camera, ALIGN_SIZE), faces, silhouette_weight,
                                         adjacency)
             pose, x0 = _align(x0, coarse, space, guess, align == "similarity", unit_camera.rotation[2].to(dtype))
-    objective = NormalMapObjective(target, mask, camera_in_frame(camera, frame, pose), faces, silhouette_weight,
-                                   adjacency)
+    region_faces = None if region is None else torch.as_tensor(region_triangles(model, region), device=torch_device)
+    objective = NormalMapObjective(target, mask, camera_in_frame(camera, frame, pose), faces,
+                                   silhouette_weight if region is None else 0.0, adjacency, region_faces)
     x, done, loss = x0, 0, {}
     for settings in stages:
         param, optimizer = build(settings, space, x)

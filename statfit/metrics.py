@@ -47,15 +47,18 @@ def _summary(values: np.ndarray, scale: float) -> dict[str, float]:
             "max": float(values.max()), "mean_rel": float(values.mean() / scale)}
 
 
-def evaluate(fit: np.ndarray, gt: np.ndarray, faces: np.ndarray, observed: np.ndarray | None = None) -> dict:
+def evaluate(fit: np.ndarray, gt: np.ndarray, faces: np.ndarray, observed: np.ndarray | None = None,
+             region: np.ndarray | None = None) -> dict:
     """Per-vertex errors ‖fit − gt‖ over all / observed / unobserved vertices, plus, on observed
     vertices, the distance of the ground truth to the fitted *surface*. ``mean_rel`` divides by
-    the ground truth's RMS radius (unit-free)."""
+    the ground truth's RMS radius (unit-free). ``region`` (N,) bool restricts every summary to
+    those vertices."""
     scale = Frame.of(gt).scale
     err = np.linalg.norm(fit - gt, axis=1)
-    report = {"scale": scale, "all": _summary(err, scale)}
+    inside = np.ones(len(gt), dtype=bool) if region is None else region
+    report = {"scale": scale, "all": _summary(err[inside], scale)}
     if observed is not None:
-        report["observed"] = _summary(err[observed], scale)
-        report["unobserved"] = _summary(err[~observed], scale)
-        report["observed_surface"] = _summary(surface_distance(gt[observed], fit, faces), scale)
+        report["observed"] = _summary(err[observed & inside], scale)
+        report["unobserved"] = _summary(err[~observed & inside], scale)
+        report["observed_surface"] = _summary(surface_distance(gt[observed & inside], fit, faces), scale)
     return report

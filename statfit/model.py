@@ -9,13 +9,16 @@ The basis used by the filters is derived by SVD: ``shapedirs`` flattened to (3N,
 """
 from __future__ import annotations
 
+import dataclasses
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from statfit.errors import StatfitError
-from statfit.io.npz import read_npz
+from statfit.io.mesh import write_atomic
+from statfit.io.npz import npz_bytes, read_npz
 
 
 @dataclass(frozen=True)
@@ -99,8 +102,7 @@ def load_model(path: str | Path, k: int | None = None) -> StatModel:
     """Load and validate a model npz; keep the first ``k`` modes when given."""
     path = Path(path)
     arrays = read_npz(path)
-    if np.asarray(arrays.get("kind", "")).reshape(-1).tolist() == ["texture"]:
-        raise StatfitError(f"{path} is a texture model (for `statfit inpaint --model`), not a mesh model")
+    refuse_texture_model(arrays, path)
     missing = [key for key in ("v_template", "faces", "shapedirs") if key not in arrays]
     if missing:
         raise StatfitError(f"model {path} lacks the key(s) {', '.join(missing)}")
@@ -108,6 +110,68 @@ def load_model(path: str | Path, k: int | None = None) -> StatModel:
     model = model_from_arrays(arrays["v_template"], arrays["faces"], arrays["shapedirs"],
                               arrays.get("landmarks"), regions, source=str(path))
     return model.truncated(k) if k is not None else model
+
+
+def refuse_texture_model(arrays: dict[str, np.ndarray], path: str | Path) -> None:
+    """Raise a clear error when the npz ``arrays`` hold a texture model (``kind = "texture"``)."""
+    if np.asarray(arrays.get("kind", "")).reshape(-1).tolist() == ["texture"]:
+        raise StatfitError(f"{path} is a texture model (for `statfit inpaint --model`), not a mesh model")
+
+
+def model_arrays(model: StatModel) -> dict[str, np.ndarray]:
+    """The npz-contract arrays of ``model`` (shapedirs = basis scaled by the std-devs)."""
+    arrays = {"v_template": model.template, "faces": model.faces,
+              "shapedirs": (model.basis * model.std).reshape(model.num_vertices, 3, model.num_modes)}
+    if model.landmarks is not None:
+        arrays["landmarks"] = model.landmarks
+    arrays.update({f"region_{name}": index for name, index in model.regions.items()})
+    return arrays
+
+
+def save_model(model: StatModel, path: str | Path) -> None:
+    """Write ``model`` as an npz in the contract, atomically, with reproducible bytes."""
+    write_atomic(path, npz_bytes(model_arrays(model)))
+
+
+def with_regions(model: StatModel, regions: dict[str, np.ndarray], source: str = "regions") -> StatModel:
+    """``model`` with named vertex subsets added (or replaced), validated as vertex indices."""
+    for name in regions:
+        if not re.fullmatch(r"[A-Za-z0-9_]+", name):
+            raise StatfitError(f"{source}: region name {name!r} must be letters, digits and underscores")
+    checked = {name: _index_array(index, model.num_vertices, f"{source}: {name}") for name, index in regions.items()}
+    return dataclasses.replace(model, regions={**model.regions, **checked})
+
+
+def with_landmarks(model: StatModel, indices: np.ndarray, source: str = "landmarks") -> StatModel:
+    """``model`` with its landmark vertex indices (L,) set, validated."""
+    return dataclasses.replace(model, landmarks=_index_array(indices, model.num_vertices, source))
+
+
+def region_vertices(model: StatModel, name: str) -> np.ndarray:
+    """The vertex indices of the region ``name``; a clear error lists the model's regions."""
+    if name not in model.regions:
+        known = ", ".join(sorted(model.regions)) or "none"
+        raise StatfitError(f"the model has no region {name!r} (its regions: {known})")
+    return model.regions[name]
+
+
+def region_triangles(model: StatModel, name: str) -> np.ndarray:
+    """(F,) bool: the triangles whose three vertices all lie in the region ``name``."""
+    mask = np.isin(model.faces, region_vertices(model, name)).all(axis=1)
+    if not mask.any():
+        raise StatfitError(f"the region {name!r} contains no whole triangle")
+    return mask
+
+
+# Largest bounding-box side of a head (0.1–0.5 m) or a body (1–2.5 m) in each unit.
+_UNIT_RANGES = (("metres (head-sized)", 0.1, 0.5), ("metres (body-sized)", 1.0, 2.5),
+                ("centimetres (head-sized)", 10.0, 50.0), ("millimetres (head-sized)", 100.0, 500.0))
+
+
+def units_guess(template: np.ndarray) -> str:
+    """A guess of the model's length unit from its largest extent, or ``unknown``."""
+    extent = float(np.ptp(template, axis=0).max())
+    return next((name for name, low, high in _UNIT_RANGES if low <= extent <= high), "unknown")
 
 
 def default_model_path() -> Path:

@@ -9,13 +9,13 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from statfit.align import Similarity, icp, initial_guess
+from statfit.align import Similarity, icp, initial_guess, umeyama
 from statfit.closest import ClosestPointQuery
 from statfit.errors import StatfitError
 from statfit.fit import StageTimer, run_fit
 from statfit.frame import Frame
 from statfit.methods import FitSpace, Settings, build, resolve
-from statfit.model import StatModel
+from statfit.model import StatModel, region_triangles
 from statfit.objectives.scan import ScanObjective
 
 ALIGNMENTS = ("none", "rigid", "similarity")
@@ -75,10 +75,31 @@ def fit_space(model: StatModel, frame: Frame, device: torch.device, dtype: torch
                     as_tensor(model.std / frame.scale), model.faces)
 
 
-def prealign(model: StatModel, points: np.ndarray, align: str) -> Similarity:
-    """The model→scan transform for ``align`` in none|rigid|similarity; checks units first."""
+def landmark_alignment(model: StatModel, landmarks: np.ndarray) -> Similarity:
+    """The similarity (scale, rotation, translation) that best maps the model's landmark vertices
+    onto the scan's ``landmarks`` (L, 3), in the model's landmark order; NaN rows are missing."""
+    if model.landmarks is None:
+        raise StatfitError(f"the model {model.source} has no landmarks, so --landmarks cannot be used")
+    landmarks = np.asarray(landmarks, dtype=np.float64)
+    if landmarks.shape != (model.landmarks.size, 3):
+        raise StatfitError(f"expected {model.landmarks.size} landmarks (one x y z row per model landmark, NaN "
+                           f"for a missing one), got an array of shape {landmarks.shape}")
+    present = np.isfinite(landmarks).all(axis=1)
+    source = model.template[model.landmarks[present]]
+    if present.sum() < 3 or np.linalg.matrix_rank(source - source.mean(axis=0), tol=1e-9 * np.ptp(source)) < 2:
+        raise StatfitError(f"--landmarks needs at least 3 present, non-collinear landmarks; got {int(present.sum())}")
+    return umeyama(source, landmarks[present], with_scale=True)
+
+
+def prealign(model: StatModel, points: np.ndarray, align: str, landmarks: np.ndarray | None = None) -> Similarity:
+    """The model→scan transform for ``align`` in none|rigid|similarity; checks units first. With
+    ``landmarks`` (L, 3), the landmark similarity is the start (and, with align none, the result)."""
     if align not in ALIGNMENTS:
         raise StatfitError(f"unknown alignment {align!r}; choose one of {', '.join(ALIGNMENTS)}")
+    if landmarks is not None:
+        start = landmark_alignment(model, landmarks)
+        return start if align == "none" else icp(model.template, model.faces, points, align == "similarity",
+                                                 start=start)
     ratio = np.linalg.norm(np.ptp(points, axis=0)) / np.linalg.norm(np.ptp(model.template, axis=0))
     if align != "similarity" and not 1 / UNIT_MISMATCH_FACTOR < ratio < UNIT_MISMATCH_FACTOR:
         raise StatfitError(f"the scan is {ratio:.3g} times the model's size: are they in different units? "
@@ -97,8 +118,14 @@ def register(model: StatModel, points: np.ndarray, method: str = "default", *, p
              refresh_every: int = 10, trim: float = 0.05, seed: int = 0,
              on_record: Callable[[int, dict[str, float]], None] | None = None,
              timer: StageTimer | None = None, stages: tuple[Settings, ...] | None = None,
+             region: str | None = None, landmarks: np.ndarray | None = None,
              **overrides: Any) -> Registration:
     """Fit ``model`` to the scan ``points`` (M, 3) with ``method``.
+
+    ``region`` names a stored vertex subset: only scan points whose closest surface point lies on
+    the region's triangles enter the data term, while the filter and prior still move every vertex.
+    ``landmarks`` (L, 3), the scan's points for the model's landmarks (NaN = missing), pre-align the
+    scan by a similarity first (refined by ICP when ``align`` is rigid or similarity).
 
     ``overrides`` (iterations, lr, beta, power, lam, laplacian, solver, mode_gain) replace the
     method's settings; ``stages`` replaces the method altogether by an explicit pipeline. Warns (StatfitWarning) when the scan is far from the model with align='none'.
@@ -108,14 +135,17 @@ def register(model: StatModel, points: np.ndarray, method: str = "default", *, p
     torch_device = resolve_device(device)
     torch.manual_seed(seed)
     started = time.perf_counter()
-    transform = prealign(model, points, align)
+    region_faces = None if region is None else torch.as_tensor(region_triangles(model, region), device=torch_device)
+    transform = prealign(model, points, align, landmarks)
     frame = Frame.of(model.template)
     space = fit_space(model, frame, torch_device, dtype)
     scan = torch.as_tensor(frame.to_unit(transform.inverse_apply(points)), dtype=dtype, device=torch_device)
     objective = ScanObjective(scan, ClosestPointQuery(model.faces, model.num_vertices, k=2, device=torch_device),
-                              refresh_every=refresh_every, trim=trim)
+                              refresh_every=refresh_every, trim=trim, region_faces=region_faces)
     median = float(objective.refresh(space.mean).distance.median())
-    if align == "none" and median > FAR_DISTANCE:
+    if objective.kept == 0:
+        raise StatfitError(f"no scan point lies closest to the region {region!r}: is the scan of another part?")
+    if align == "none" and landmarks is None and median > FAR_DISTANCE:
         warnings.warn(f"the scan is far from the model (median distance {median * frame.scale:.3g}, "
                       f"{median:.2f} model radii); consider --align rigid", StatfitWarning, stacklevel=2)
     timer = timer or StageTimer(sync=torch_device.type == "cuda")

@@ -6,6 +6,8 @@ from the vertex normals of the current mesh, so the term is differentiable throu
 silhouette: ``Σ (m − m̂)² / |target|`` over all pixels, where ``m`` is the rendered coverage
 antialiased at silhouette edges (its only gradients), ``m̂`` the target mask.
 The total is ``normal + silhouette_weight · silhouette``. Visibility is recomputed every call.
+With a region (a mask over triangles), the normal term counts only the pixels that show a region
+triangle.
 """
 from __future__ import annotations
 
@@ -20,10 +22,12 @@ class NormalMapObjective:
     """Data term of inverse rendering, in camera space (OpenCV axes)."""
 
     def __init__(self, normals: torch.Tensor, mask: torch.Tensor, camera: Camera, faces: torch.Tensor,
-                 silhouette_weight: float = SILHOUETTE_WEIGHT, adjacency: MeshAdjacency | None = None):
+                 silhouette_weight: float = SILHOUETTE_WEIGHT, adjacency: MeshAdjacency | None = None,
+                 region_faces: torch.Tensor | None = None):
         """normals: (H, W, 3) target unit normals in camera space; mask: (H, W) bool target
         coverage; faces: (F, 3) long on the normals' device; adjacency: ``MeshAdjacency.from_faces(faces)``,
-        pass it to share it between objectives."""
+        pass it to share it between objectives; region_faces: (F,) bool, the triangles whose pixels
+        the normal term uses (all when None)."""
         self.mask = mask.to(normals.dtype)
         # Per-pixel lookups of the target at the covered pixels: normals (3, H·W), mask (H·W,).
         self._normals_by_pixel = normals.reshape(-1, 3).T.contiguous()
@@ -33,6 +37,7 @@ class NormalMapObjective:
         self.silhouette_weight = silhouette_weight
         self.adjacency = adjacency if adjacency is not None else MeshAdjacency.from_faces(faces)
         self.count = float(mask.sum())
+        self.region_faces = region_faces
 
     def prepare(self, vertices: torch.Tensor, iteration: int) -> None:
         """Nothing to precompute: visibility is part of each call."""
@@ -43,6 +48,8 @@ class NormalMapObjective:
         normals = fragment_normals(vertices, self.faces, fragments, self.camera)                 # (3, M)
         target = self._normals_by_pixel.index_select(1, fragments.pixel)
         both = self._mask_by_pixel.index_select(0, fragments.pixel)
+        if self.region_faces is not None:
+            both = both * self.region_faces.index_select(0, fragments.face).to(both.dtype)
         normal = ((normals - target).abs().sum(dim=0) * both).sum() / both.sum().clamp_min(1.0)
         terms = {"normal": normal}
         if self.silhouette_weight:
