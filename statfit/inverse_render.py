@@ -156,13 +156,16 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
                 dtype: torch.dtype = torch.float32, silhouette_weight: float = SILHOUETTE_WEIGHT, seed: int = 0,
                 on_record: Callable[[int, dict[str, float]], None] | None = None,
                 timer: StageTimer | None = None, stages: tuple[Settings, ...] | None = None,
-                region: str | None = None, **overrides: Any) -> Reconstruction:
+                region: str | None = None, on_snapshot: Callable[[int, np.ndarray], None] | None = None,
+                **overrides: Any) -> Reconstruction:
     """Fit ``model`` to ``normal_map`` seen by ``camera`` with ``method``.
 
     ``init`` (N, 3): start from these vertices (world frame) instead of the template.
     ``region``: a stored vertex subset; after the alignment (which uses the whole map), the normal
     term counts only pixels showing the region's triangles and the silhouette is not used (the
     outline belongs to the whole mesh); the filter and prior still move every vertex.
+    ``on_snapshot(iteration, vertices)`` receives the current vertices (N, 3, world frame) every 10
+    iterations of the fit (e.g. to trace the error against a ground truth).
     ``overrides`` replace the method's settings (see :func:`statfit.methods.resolve`); ``stages``
     replaces the method by an explicit pipeline.
     """
@@ -195,13 +198,17 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
     region_faces = None if region is None else torch.as_tensor(region_triangles(model, region), device=torch_device)
     objective = NormalMapObjective(target, mask, camera_in_frame(camera, frame, pose), faces,
                                    silhouette_weight if region is None else 0.0, adjacency, region_faces)
+    def to_world(x: torch.Tensor) -> np.ndarray:
+        return frame.from_unit(pose.apply(x.detach().cpu().double().numpy()))
+
+    snapshot = None if on_snapshot is None else lambda it, x: on_snapshot(it, to_world(x))
     x, done, loss = x0, 0, {}
     for settings in stages:
         param, optimizer = build(settings, space, x)
         result = run_fit(param, optimizer, objective, settings.iterations, on_record=on_record,
-                         timer=timer, first_iteration=done)
+                         timer=timer, first_iteration=done, on_snapshot=snapshot)
         x, done, loss = result.vertices, done + settings.iterations, result.loss
-    vertices = frame.from_unit(pose.apply(x.detach().cpu().double().numpy()))
+    vertices = to_world(x)
     to_unit = Similarity(1.0 / frame.scale, np.eye(3), -frame.center / frame.scale)
     from_unit = Similarity(frame.scale, np.eye(3), frame.center)
     return Reconstruction(vertices, compose(from_unit, compose(pose, to_unit)), stages, loss, time.perf_counter() - started, dict(timer.seconds))

@@ -119,13 +119,15 @@ def register(model: StatModel, points: np.ndarray, method: str = "default", *, p
              on_record: Callable[[int, dict[str, float]], None] | None = None,
              timer: StageTimer | None = None, stages: tuple[Settings, ...] | None = None,
              region: str | None = None, landmarks: np.ndarray | None = None,
-             **overrides: Any) -> Registration:
+             on_snapshot: Callable[[int, np.ndarray], None] | None = None, **overrides: Any) -> Registration:
     """Fit ``model`` to the scan ``points`` (M, 3) with ``method``.
 
     ``region`` names a stored vertex subset: only scan points whose closest surface point lies on
     the region's triangles enter the data term, while the filter and prior still move every vertex.
     ``landmarks`` (L, 3), the scan's points for the model's landmarks (NaN = missing), pre-align the
     scan by a similarity first (refined by ICP when ``align`` is rigid or similarity).
+    ``on_snapshot(iteration, vertices)`` receives the current vertices (N, 3), in the scan's frame,
+    every 10 iterations (e.g. to trace the error against a ground truth).
 
     ``overrides`` (iterations, lr, beta, power, lam, laplacian, solver, mode_gain) replace the
     method's settings; ``stages`` replaces the method altogether by an explicit pipeline. Warns (StatfitWarning) when the scan is far from the model with align='none'.
@@ -149,12 +151,16 @@ def register(model: StatModel, points: np.ndarray, method: str = "default", *, p
         warnings.warn(f"the scan is far from the model (median distance {median * frame.scale:.3g}, "
                       f"{median:.2f} model radii); consider --align rigid", StatfitWarning, stacklevel=2)
     timer = timer or StageTimer(sync=torch_device.type == "cuda")
+    def to_scan_frame(x: torch.Tensor) -> np.ndarray:
+        return transform.apply(frame.from_unit(x.detach().cpu().double().numpy()))
+
+    snapshot = None if on_snapshot is None else lambda it, x: on_snapshot(it, to_scan_frame(x))
     x, done, loss = space.mean.clone(), 0, {}
     for settings in stages:
         param, optimizer = build(settings, space, x)
         objective.reset()  # a new stage starts from fresh correspondences
         result = run_fit(param, optimizer, objective, settings.iterations, on_record=on_record,
-                         timer=timer, first_iteration=done)
+                         timer=timer, first_iteration=done, on_snapshot=snapshot)
         x, done, loss = result.vertices, done + settings.iterations, result.loss
-    vertices = transform.apply(frame.from_unit(x.detach().cpu().double().numpy()))
+    vertices = to_scan_frame(x)
     return Registration(vertices, transform, stages, loss, time.perf_counter() - started, dict(timer.seconds))
