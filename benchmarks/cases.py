@@ -1,6 +1,6 @@
 """The benchmark cases on the ICT head: an identity sample plus an expression outside the identity
 model, seen as a partial scan (4,300 points from one side) or as one normal map. The same seeds and
-views as the registration and rendering studies (docs/benchmarks.md)."""
+views as the registration and rendering studies (docs/studies.md)."""
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -50,4 +50,4 @@ def demo(
     console = Console()
     console.print(table)
     console.print("The target is a model sample, inside the model's span, so pca can reach it exactly; for targets "
-                  "with detail outside the model (ICT expressions) see docs/benchmarks.md.")
+                  "with detail outside the model (ICT expressions) see docs/studies.md.")

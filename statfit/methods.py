@@ -1,7 +1,7 @@
 """Fitting methods: settings, presets, and construction of (parametrisation, optimiser).
 
 A *pipeline* is a sequence of stages; each stage's result starts the next. The paper-faithful
-methods are one stage each; ``default`` is the pipeline chosen by the study in docs/benchmarks.md.
+methods are one stage each; ``default`` is the pipeline chosen by the study in docs/studies.md.
 """
 from __future__ import annotations
 
@@ -56,7 +56,7 @@ PAPER: dict[str, Settings] = {
     "none": Settings("none", 500, 0.01),
 }
 
-# Our defaults: each method's best settings in the registration study (docs/benchmarks.md),
+# Our defaults: each method's best settings in the registration study (docs/studies.md),
 # measured on ICT partial scans with expressions outside the model. ``statistical`` here uses
 # mode gains (γ = 1); ``--preset paper`` (or ``mode_gain=0``) gives the paper's filter.
 TUNED: dict[str, Settings] = {
@@ -70,7 +70,7 @@ TUNED: dict[str, Settings] = {
 
 # Two stages of the statistical filter with β = 1000: gains ∝ std (γ = 1) find the shape in the
 # model's span, then a smaller step with gains ∝ sqrt(std) (γ = 0.5) lets low-variance modes and
-# off-model detail (expressions) in. Chosen by the study and its follow-up (docs/benchmarks.md).
+# off-model detail (expressions) in. Chosen by the study and its follow-up (docs/studies.md).
 PIPELINES: dict[str, tuple[Settings, ...]] = {
     "default": (Settings("statistical", 4000, 0.03, beta=1000.0, mode_gain=1.0),
                 Settings("statistical", 1333, 0.01, beta=1000.0, mode_gain=0.5)),
@@ -78,7 +78,7 @@ PIPELINES: dict[str, tuple[Settings, ...]] = {
 
 
 # Inverse rendering (one normal map): each method's best settings in the rendering study
-# (docs/benchmarks.md §5), 3000 iterations each as in the paper. The default is the hybrid filter
+# (docs/studies.md §5), 3000 iterations each as in the paper. The default is the hybrid filter
 # with mode gains ∝ std (γ = 1): the lowest error over all vertices of everything tried.
 RENDER_TUNED: dict[str, Settings] = {
     "statistical": Settings("statistical", 3000, 0.01, beta=1000.0, mode_gain=1.0),

@@ -1,7 +1,7 @@
 """Prefactored sparse SPD solvers: factorise once, then each call only solves.
 
 All take and return torch tensors of shape (n, c) on the solver's device. Measured choice of the
-default: see docs/benchmarks.md (``cholespy``, the solver largesteps uses, was fastest).
+default: see docs/studies.md (``cholespy``, the solver largesteps uses, was fastest).
 """
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """End to end on the real ICT-FaceKit model: identity sample + an expression outside the model,
 partial scans of 4,300 points. Errors are always against the ground truth.
 
-What is asserted is what the study (docs/benchmarks.md) measured: the paper's statistical filter
+What is asserted is what the study (docs/studies.md) measured: the paper's statistical filter
 beats the paper's Laplacian and regulariser (the Laplacian wins on the two jaw cases, which is
 documented, not tested away), and the default pipeline beats every method at its tuned settings on
 cases with large expressions (on small expressions a converged pca fit is as good or better).

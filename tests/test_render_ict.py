@@ -1,6 +1,6 @@
 """End to end on the real ICT head model: one normal map (256², yaw 20°) of an identity sample plus
 the jawOpen expression (outside the identity model); every fit is scored against the ground truth
-over all vertices. What is asserted is what the rendering study measured (docs/benchmarks.md §5).
+over all vertices. What is asserted is what the rendering study measured (docs/studies.md §5).
 
 The four 3000-iteration fits run two at a time, one thread each: at 256² a fit gains little from a
 second thread, so this halves the wall time on a 2-core machine.
