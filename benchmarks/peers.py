@@ -28,6 +28,7 @@ from statfit.fit import run_fit
 from statfit.frame import Frame
 from statfit.methods import FitSpace, Settings, build
 from statfit.objectives.scan import ScanObjective
+from statfit.register import register
 
 THREADS = 2
 # (λ, lr, iterations): the paper's laplacian settings and statfit's tuned ones (statfit.methods).
@@ -35,14 +36,15 @@ LAPLACIAN = {"paper": (19.0, 0.01, 500), "tuned": (300.0, 0.1, 1000)}
 QUICK_ITERATIONS = 200
 QUICK = ("jaw-open only; 200 laplacian iterations at the paper's λ and lr only; the default pipeline cut to "
          "500 iterations; 2 iterations per amberg step; no sumner; 10 CPD iterations")
-# trimesh's own default schedules, written out so the report can state them.
+# Match distance thresholds, in trimesh's normalised frame (chosen on jaw-open, see PEER_NOTES).
 AMBERG_THRESHOLD = 0.05
 SUMNER_THRESHOLD = 0.1
+# trimesh's own default schedules, written out so the report can state them.
 AMBERG_STEPS = [[0.01, 10, 0.5, 10], [0.02, 5, 0.5, 10], [0.03, 2.5, 0.5, 10], [0.01, 0, 0.0, 10]]
 SUMNER_STEPS = [[1, 0.001, 1.0, 1000, 0], [1, 0.001, 1.0, 1000, 0], [10, 0.001, 1.0, 1000, 0],
                 [100, 0.001, 1.0, 1000, 0]]
 # Coherent point drift: kernel width β and regularisation α in unit-frame units (chosen on jaw-open,
-# see GRID), outlier weight w, and the control vertices that carry the motion field.
+# see PEER_NOTES), outlier weight w, and the control vertices that carry the motion field.
 CPD = {"alpha": 20.0, "beta": 0.05, "w": 0.1, "sigma2": 0.01, "controls": 1000, "iterations": 50, "tolerance": 1e-6}
 
 INTRO = """Template → partial scan (4,300 points, the registration cases), each fit in a fresh process with
@@ -200,8 +202,6 @@ def cpd(template: np.ndarray, points: np.ndarray, alpha: float, beta: float, w: 
 def measure(case_name: str, tool: str, settings: dict[str, Any], device: str = "cpu") -> dict[str, Any]:
     """One fit of ``tool`` on the named scan case (run in a child process): relative errors, wall
     time of the fit and, for the laplacian pair, set-up / per-iteration times and the vertices."""
-    from statfit.register import register
-
     model, case = ict_model(), scan_case(case_name)
     frame = Frame.of(model.template)
     template, points = frame.to_unit(model.template), frame.to_unit(case.points)
@@ -265,7 +265,7 @@ def run(quick: bool, device: str = "cpu") -> Section:
     cases = ["jaw-open"] if quick else list(SCAN_CASES)
     results, template, pairs = [], {}, []
     for name in cases:
-        template[name] = in_child("peers", "template_errors", name, threads=THREADS)
+        template[name] = template_errors(name)
         case_results = []
         for tool, settings in _jobs(quick):
             case_results.append(in_child("peers", "measure", name, tool, settings, device, threads=THREADS))
