@@ -261,7 +261,7 @@ def _label(result: dict[str, Any]) -> str:
     return {"amberg": "trimesh nricp_amberg", "sumner": "trimesh nricp_sumner", "cpd": "pycpd deformable"}[result["tool"]]
 
 
-def run(quick: bool, device: str = "cpu") -> Section:
+def run(quick: bool, device: str = "cpu", image_dir: Path | None = None) -> Section:
     """All peers on the scan cases (quick: jaw-open only, shorter runs, see ``_jobs``)."""
     cases = ["jaw-open"] if quick else list(SCAN_CASES)
     results, template, pairs = [], {}, []
