@@ -76,15 +76,28 @@ def grid(side: int) -> tuple[np.ndarray, np.ndarray]:
     return vertices, faces
 
 
+def peak_rss_mb() -> float:
+    """This process's peak resident set (MB) since it started or last exec'd (``VmHWM``; unlike
+    ``ru_maxrss``, not inherited from a large parent across fork)."""
+    status = Path("/proc/self/status")
+    if status.exists():
+        for line in status.read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
 def in_child(module: str, function: str, *args: Any, threads: int = 2) -> Any:
     """``module.function(*args)`` run in a fresh Python process (its own peak memory, no state shared
     with other measurements); arguments and result go through JSON. The child's peak RSS (MB) is
     added to a dict result as ``peak_rss_mb``."""
-    code = (f"import json, resource, sys, torch; torch.set_num_threads({threads}); "
-            f"sys.path.insert(0, {str(ROOT / 'benchmarks')!r}); import {module}; "
+    code = (f"import json, sys, torch; torch.set_num_threads({threads}); "
+            f"sys.path.insert(0, {str(ROOT / 'benchmarks')!r}); import common, {module}; "
             f"result = {module}.{function}(*json.loads(sys.argv[1])); "
-            "result = result | {'peak_rss_mb': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024} "
-            "if isinstance(result, dict) else result; print('\\n' + json.dumps(result))")
+            "result = result | {'peak_rss_mb': common.peak_rss_mb()} if isinstance(result, dict) else result; "
+            "print('\\n' + json.dumps(result))")
     done = subprocess.run([sys.executable, "-c", code, json.dumps(list(args))], capture_output=True, text=True,
                           cwd=ROOT)
     if done.returncode != 0:

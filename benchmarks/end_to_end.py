@@ -8,7 +8,6 @@ default pipelines run as shipped (their own iteration counts).
 """
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 import tempfile
@@ -19,20 +18,25 @@ from cases import normal_case, relative_errors, scan_case
 from common import ICT_MODEL, Section, markdown_table
 
 METHODS = ("statistical", "hybrid", "laplacian", "pca", "regularized", "none")
-FULL = {"register_iterations": None, "render_iterations": None, "size": 512}
-QUICK = {"register_iterations": 50, "render_iterations": 30, "size": 128}
+FULL = {"register_iterations": None, "render_iterations": None, "size": 512, "methods": ("default", *METHODS)}
+QUICK = {"register_iterations": 50, "render_iterations": 30, "size": 128, "methods": ("default", "statistical", "laplacian")}
+
+
+# Runs the CLI in this interpreter and reports its peak RSS (VmHWM) on stderr's last line at exit.
+LAUNCHER = ("import atexit, sys; sys.path.insert(0, {folder!r}); import common; "
+            "atexit.register(lambda: sys.stderr.write(f'\\npeak_rss_mb {{common.peak_rss_mb()}}\\n')); "
+            "from statfit_cli.main import main; main(sys.argv[1:])")
 
 
 def _measure(argv: list[str]) -> tuple[float, float]:
     """Wall seconds and peak RSS (MB) of one ``statfit`` process."""
     start = time.perf_counter()
-    process = subprocess.Popen([sys.executable, "-m", "statfit_cli.main", *argv],
-                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    _, status, usage = os.wait4(process.pid, 0)
+    done = subprocess.run([sys.executable, "-c", LAUNCHER.format(folder=str(Path(__file__).resolve().parent)),
+                           *argv], capture_output=True, text=True)
     seconds = time.perf_counter() - start
-    if os.waitstatus_to_exitcode(status) != 0:
-        raise RuntimeError(f"statfit {' '.join(argv)} failed: {process.stderr.read().decode()[-2000:]}")
-    return seconds, usage.ru_maxrss / 1024
+    if done.returncode != 0:
+        raise RuntimeError(f"statfit {' '.join(argv)} failed: {done.stderr[-2000:]}")
+    return seconds, float(done.stderr.strip().splitlines()[-1].split()[1])
 
 
 def measure(quick: bool, device: str = "cpu") -> dict:
@@ -51,7 +55,7 @@ def measure(quick: bool, device: str = "cpu") -> dict:
         jobs = {"register": (["register", str(folder / "scan.ply")], scan, config["register_iterations"]),
                 "render": (["render", str(folder / "normals.exr")], normals, config["render_iterations"])}
         for job, (argv, case, iterations) in jobs.items():
-            for method in ("default", *METHODS):
+            for method in config["methods"]:
                 preset = "tuned" if method == "default" else "paper"
                 out = folder / f"{job}-{method}.ply"
                 extra = ["--iterations", str(iterations)] if iterations else []

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import Section, markdown_table
+from common import Section, in_child, markdown_table
 
 FULL = {"size": 1024, "k": 100, "iterations": 200}
 QUICK = {"size": 256, "k": 50, "iterations": 40}
@@ -45,8 +45,6 @@ def _timed(fn):
 
 def measure(quick: bool, device: str = "cpu") -> dict:
     """One-off costs and per-method step times and hole errors."""
-    import resource
-
     from statfit.filters import LaplacianFilter
     from statfit.texture.grid import grid_laplacian
     from statfit.texture.inpaint import inpaint, inpaint_settings, model_reconstruction
@@ -72,12 +70,12 @@ def measure(quick: bool, device: str = "cpu") -> dict:
                      "inpaint_wall_s": wall, **hole_errors(result.result, truth, visible)})
     return {"device": device, "config": config, "k": model.num_modes, "model_build_s": model_s,
             "grid_laplacian_s": grid_s, "factorisation_s": factor_s, "reconstruction_s": reconstruction_s,
-            "methods": rows, "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+            "methods": rows}
 
 
 def run(quick: bool, device: str, image_dir: Path) -> Section:
     """Measure and format this part."""
-    results = measure(quick, device)
+    results = in_child("inpainting", "measure", quick, device)  # a fresh process: its own peak memory
     config = results["config"]
     rows = [[r["method"], r["per_step_ms"], r["fit_s"], r["inpaint_wall_s"], r["rmse"], r["correlation"]]
             for r in results["methods"]]
