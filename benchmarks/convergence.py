@@ -11,7 +11,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from common import Section, in_child, markdown_table
+from common import Section, in_child, markdown_table, save_figure
 
 METHODS = ("default", "statistical", "hybrid", "laplacian", "pca", "regularized", "none")
 FULL = {"scan": ("jaw-open", "smile"), "normals": ("jaw-open",), "size": 256, "iterations": None, "methods": METHODS}
@@ -113,10 +113,7 @@ def _plot(traces: list[dict], title: str, path: Path) -> None:
     axes[1, 0].set_ylabel("mean error / RMS radius")
     axes[0, 0].legend(fontsize=8)
     fig.suptitle(title)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def run(quick: bool, device: str, image_dir: Path) -> Section:

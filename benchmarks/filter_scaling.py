@@ -12,10 +12,9 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
-from common import Section, grid, markdown_table, median_ms
+from common import Section, grid, markdown_table, median_ms, save_figure
 
 SIDES = {"quick": (128, 256), "full": (128, 256, 512, 1024)}
 KS = {"quick": (50, 100), "full": (50, 100, 200, 400)}
@@ -64,7 +63,6 @@ def laplacian_rows(side: int, device: torch.device, repeats: int) -> list[dict]:
         factorise = 1e3 * (time.perf_counter() - start)
         rows.append({"side": side, "vertices": len(vertices), "solver": solver, "factorise_ms": factorise,
                      "solve_ms": median_ms(lambda: prepared.solve(grad), repeats, sync)})
-        del prepared
     return rows
 
 
@@ -131,10 +129,7 @@ def _plot(results: dict, path: Path) -> None:
     ax.set_title(f"Filter step time ({results['device']})")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 def run(quick: bool, device: str, image_dir: Path) -> Section:

@@ -6,7 +6,7 @@ Every fit runs in a fresh process (``common.in_child``) with the same thread cou
 unit frame (template centred, unit RMS radius). The adapters take arrays in that frame, so the
 tests run them on the embedded model.
 
-    python benchmarks/peers.py [--quick] [--device cpu|cuda] [--json benchmarks/results/peers.json]
+    python benchmarks/peers.py [--quick] [--device cpu|cuda] [--json PATH]
 """
 from __future__ import annotations
 

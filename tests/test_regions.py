@@ -11,7 +11,7 @@ import trimesh
 
 from statfit.inverse_render import camera_space_normals
 from statfit.io.normalmap import NormalMap
-from statfit.model import model_arrays, region_triangles
+from statfit.model import region_triangles
 from statfit.objectives.normals import NormalMapObjective
 from statfit.synth import camera_for_view, render_target
 from test_cli import run
