@@ -21,8 +21,8 @@ from unittest import mock
 import numpy as np
 import torch
 
-from common import Section, markdown_table, save_json, in_child
 from cases import SCAN_CASES, ict_model, relative_errors, scan_case
+from common import Section, in_child, markdown_table, save_json
 from statfit.closest import ClosestPointQuery
 from statfit.fit import run_fit
 from statfit.frame import Frame

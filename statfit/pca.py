@@ -66,8 +66,13 @@ def principal_components(samples: np.ndarray, k: int, *, randomized: bool | None
         s, vt = s[:k], vt[:k]
     std = s / np.sqrt(m - 1)
     keep = std > std[0] * 1e-10
-    vt = vt[keep] * np.sign(vt[keep][np.arange(int(keep.sum())), np.abs(vt[keep]).argmax(axis=1)])[:, None]
-    return PCA(mean, vt, std[keep], total_variance)
+    return PCA(mean, with_fixed_signs(vt[keep]), std[keep], total_variance)
+
+
+def with_fixed_signs(directions: np.ndarray) -> np.ndarray:
+    """``directions`` (K, D), each row's sign flipped so that its largest-magnitude entry is positive."""
+    rows = np.arange(len(directions))
+    return directions * np.sign(directions[rows, np.abs(directions).argmax(axis=1)])[:, None]
 
 
 def _randomized_svd(a: np.ndarray, k: int, rng: np.random.Generator,

@@ -10,7 +10,7 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Iterable
 
 import numpy as np
 
@@ -18,7 +18,7 @@ from statfit.errors import StatfitError
 from statfit.io.mesh import write_atomic
 from statfit.io.npz import npz_bytes, read_npz
 from statfit.model import _float_array
-from statfit.pca import principal_components
+from statfit.pca import principal_components, with_fixed_signs
 from statfit.register import StatfitWarning
 from statfit.texture.resample import resize_image
 
@@ -98,8 +98,7 @@ def texture_model_from_arrays(v_template: np.ndarray, shapedirs: np.ndarray, ima
     std = np.sqrt(variance[keep])
     # (K, D) directly: flat.T is a view, so the tall shapedirs are not copied.
     basis_t = (vectors[:, keep] / std).T.astype(np.float32) @ np.asarray(flat, dtype=np.float32).T
-    basis_t *= np.sign(basis_t[np.arange(len(std)), np.abs(basis_t).argmax(axis=1)])[:, None]  # statfit.pca's signs
-    return TextureModel(mean.astype(np.float32), basis_t, std, height, width, source)
+    return TextureModel(mean.astype(np.float32), with_fixed_signs(basis_t), std, height, width, source)
 
 
 def load_texture_model(path: str | Path) -> TextureModel:
@@ -150,17 +149,12 @@ def as_channels(image: np.ndarray, channels: int, source: str) -> np.ndarray:
 
 
 def build_texture_model(images: Iterable[tuple[str, np.ndarray]], size: tuple[int, int], k: int, *,
-                        jitter: int = 0, seed: int = 0, randomized: bool | None = None,
-                        on_image: Callable[[str], None] | None = None) -> TextureModel:
+                        jitter: int = 0, seed: int = 0, randomized: bool | None = None) -> TextureModel:
     """PCA texture model from ``(name, image (H, W, C))`` pairs: each resized to ``size`` (H, W),
     all promoted to the largest channel count, ``jitter`` colour-jittered copies added per image
     (:func:`jitter_colours`), then :func:`statfit.pca.principal_components` with ``k`` modes (fewer,
     with a warning, when there are not enough samples)."""
-    resized = []
-    for name, image in images:
-        resized.append((name, resize_image(image, size)))
-        if on_image:
-            on_image(name)
+    resized = [(name, resize_image(image, size)) for name, image in images]
     if len(resized) < 2:
         raise StatfitError(f"a texture model needs at least 2 images, got {len(resized)}")
     channels = max(image.shape[-1] for _, image in resized)
