@@ -7,6 +7,7 @@ import warnings
 import typer
 
 from statfit.errors import StatfitError
+from statfit.threads import flush_denormals_everywhere
 from statfit_cli import demo, evaluate, inpaint, model, register, render, synth, texture
 
 app = typer.Typer(
@@ -32,6 +33,7 @@ def _fail(message: str) -> None:
 def main(argv: list[str] | None = None) -> None:
     """Run the CLI on ``argv`` (default: the process's arguments); user errors print one line on
     stderr and exit with code 2."""
+    flush_denormals_everywhere()  # before any parallel kernel, so every worker thread inherits it
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # library warnings are printed by the commands themselves
         try:

@@ -16,8 +16,8 @@ from statfit.model import region_triangles
 from statfit.register import landmark_alignment, register as fit_scan, resolve_device
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
                                 LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
-                                PowerOption, PresetOption, QuietOption, SeedOption, open_model, printed_warnings,
-                                progress_bar, setting_overrides)
+                                PowerOption, PresetOption, QuietOption, SeedOption, ThreadsOption, open_model,
+                                printed_warnings, progress_bar, setting_overrides)
 
 
 def _targets(scans: list[str], out: str | None, out_dir: Path | None, log: Path | None
@@ -61,6 +61,7 @@ def register(
                                    "similarity pre-alignment for scans in any pose, scale or units (refined by "
                                    "--align rigid/similarity if given).", show_default=False),
     device: str = DeviceOption,
+    threads: int = ThreadsOption,
     seed: int = SeedOption,
     iterations: int = IterationsOption,
     lr: float = LrOption,
@@ -116,7 +117,7 @@ def register(
         record = JsonLinesLog(log_path)
         record.write("header", command="register", method=method, preset=preset,
                      stages=[s.describe() for s in stages], model=model.source, modes=model.num_modes,
-                     input=scan, points=len(points), align=align, device=str(torch_device), seed=seed,
+                     input=scan, points=len(points), align=align, device=str(torch_device), threads=threads, seed=seed,
                      refresh=refresh, trim=trim, region=region, landmarks=str(landmarks) if landmarks else None,
                      versions=versions())
         with progress_bar(total, Path(scan).name if scan != "-" else "stdin", not quiet) as advance:
@@ -127,8 +128,8 @@ def register(
             with printed_warnings():
                 result = fit_scan(model, points, stages=stages, align=align, device=str(torch_device),
                                   refresh_every=refresh, trim=trim, seed=seed, on_record=on_record,
-                                  region=region, landmarks=scan_landmarks)
-        summary = {"input": scan, "output": target, "method": method, "iterations": total,
+                                  region=region, landmarks=scan_landmarks, threads=threads)
+        summary = {"input": scan, "output": target, "method": method, "iterations": result.iterations,
                    "final_loss": result.loss, "seconds": result.seconds,
                    "stage_seconds": result.stage_seconds, "model_to_scan": result.transform.as_matrix()}
         record.write("summary", **summary)

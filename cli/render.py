@@ -19,8 +19,8 @@ from statfit.objectives.normals import SILHOUETTE_WEIGHT
 from statfit.register import resolve_device
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
                                 LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
-                                PowerOption, PresetOption, QuietOption, SeedOption, open_model, printed_warnings,
-                                progress_bar, setting_overrides)
+                                PowerOption, PresetOption, QuietOption, SeedOption, ThreadsOption, open_model,
+                                printed_warnings, progress_bar, setting_overrides)
 
 
 def render(
@@ -52,6 +52,7 @@ def render(
                                "alignment, only pixels showing the region's triangles count and the silhouette is "
                                "not used; the rest of the mesh follows the model's prior.", show_default=False),
     device: str = DeviceOption,
+    threads: int = ThreadsOption,
     seed: int = SeedOption,
     iterations: int = IterationsOption,
     lr: float = LrOption,
@@ -99,7 +100,7 @@ def render(
                  model=model.source, modes=model.num_modes, input=str(normal_map_path), camera=camera.to_dict(),
                  pixels=int(normal_map.mask.sum()), align=align, init=str(init) if init else None,
                  normal_space=normal_space, normal_convention=normal_convention,
-                 silhouette_weight=silhouette_weight, region=region, device=str(torch_device), seed=seed,
+                 silhouette_weight=silhouette_weight, region=region, device=str(torch_device), threads=threads, seed=seed,
                  versions=versions())
     with progress_bar(total, normal_map_path.name, not quiet) as advance:
         def on_record(iteration: int, terms: dict[str, float]) -> None:
@@ -110,7 +111,7 @@ def render(
             result = reconstruct(model, normal_map, camera, stages=stages, normal_space=normal_space,
                                  normal_convention=normal_convention, align=align, init=start,
                                  device=str(torch_device), silhouette_weight=silhouette_weight, seed=seed,
-                                 on_record=on_record, region=region)
+                                 on_record=on_record, region=region, threads=threads)
     summary = {"input": str(normal_map_path), "output": str(out), "method": method, "iterations": total,
                "final_loss": result.loss, "seconds": result.seconds, "stage_seconds": result.stage_seconds,
                "model_to_world": result.pose.as_matrix()}

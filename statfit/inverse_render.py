@@ -23,15 +23,17 @@ import torch
 
 from statfit.align import Similarity, compose
 from statfit.errors import StatfitError
-from statfit.fit import StageTimer, run_fit
+from statfit.fit import StageTimer
 from statfit.frame import Frame
 from statfit.io.normalmap import NormalMap
-from statfit.methods import FitSpace, Settings, build, resolve
+from statfit.methods import FitSpace, Settings, resolve
 from statfit.model import StatModel, region_triangles
 from statfit.objectives.normals import SILHOUETTE_WEIGHT, NormalMapObjective
 from statfit.pose import fit_pose
 from statfit.register import UNIT_MISMATCH_FACTOR, fit_space, resolve_device
 from statfit.render import Camera, MeshAdjacency, rasterize
+from statfit.stages import run_stages
+from statfit.threads import choose_threads, intra_op_threads
 
 ALIGNMENTS = ("none", "rigid", "similarity")
 NORMAL_SPACES = ("world", "camera")
@@ -41,6 +43,8 @@ POSE_LR = 0.01
 GOOD_OVERLAP = 0.7
 MIN_COVERED_PIXELS = 16
 POSE_GAIN = 0.1
+# Floats the rasteriser and objective touch per pixel and iteration (for the thread choice).
+RENDER_FLOATS_PER_PIXEL = 16
 ALIGN_SIZE = 256  # the alignment runs on the map reduced by an integer factor to about this size
 
 
@@ -157,7 +161,7 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
                 on_record: Callable[[int, dict[str, float]], None] | None = None,
                 timer: StageTimer | None = None, stages: tuple[Settings, ...] | None = None,
                 region: str | None = None, on_snapshot: Callable[[int, np.ndarray], None] | None = None,
-                **overrides: Any) -> Reconstruction:
+                threads: int | None = None, **overrides: Any) -> Reconstruction:
     """Fit ``model`` to ``normal_map`` seen by ``camera`` with ``method``.
 
     ``init`` (N, 3): start from these vertices (world frame) instead of the template.
@@ -165,7 +169,8 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
     term counts only pixels showing the region's triangles and the silhouette is not used (the
     outline belongs to the whole mesh); the filter and prior still move every vertex.
     ``on_snapshot(iteration, vertices)`` receives the current vertices (N, 3, world frame) every 10
-    iterations of the fit (e.g. to trace the error against a ground truth).
+    iterations of the fit (e.g. to trace the error against a ground truth). ``threads``: torch
+    intra-op threads (default: chosen from the model's and the map's sizes, :mod:`statfit.threads`).
     ``overrides`` replace the method's settings (see :func:`statfit.methods.resolve`); ``stages``
     replaces the method by an explicit pipeline.
     """
@@ -173,45 +178,44 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
         raise StatfitError(f"unknown alignment {align!r}; choose one of {', '.join(ALIGNMENTS)}")
     stages = stages or resolve(method, preset, job="render", **overrides)
     torch_device = resolve_device(device)
-    torch.manual_seed(seed)
-    started = time.perf_counter()
-    start_shape = model.template if init is None else _checked_init(init, model)
-    check_framing(start_shape, camera, normal_map.mask, align)
-    frame = Frame.of(model.template)
-    space = fit_space(model, frame, torch_device, dtype)
-    target = torch.as_tensor(camera_space_normals(normal_map, camera, normal_space, normal_convention),
-                             dtype=dtype, device=torch_device)
-    mask = torch.as_tensor(normal_map.mask, device=torch_device)
-    faces = torch.as_tensor(model.faces, dtype=torch.long, device=torch_device)
-    x0 = torch.as_tensor(frame.to_unit(start_shape), dtype=dtype, device=torch_device)
+    work = model.basis.size + RENDER_FLOATS_PER_PIXEL * normal_map.mask.size
+    with intra_op_threads(choose_threads(work, threads)):
+        torch.manual_seed(seed)
+        started = time.perf_counter()
+        start_shape = model.template if init is None else _checked_init(init, model)
+        check_framing(start_shape, camera, normal_map.mask, align)
+        frame = Frame.of(model.template)
+        space = fit_space(model, frame, torch_device, dtype)
+        target = torch.as_tensor(camera_space_normals(normal_map, camera, normal_space, normal_convention),
+                                 dtype=dtype, device=torch_device)
+        mask = torch.as_tensor(normal_map.mask, device=torch_device)
+        faces = torch.as_tensor(model.faces, dtype=torch.long, device=torch_device)
+        x0 = torch.as_tensor(frame.to_unit(start_shape), dtype=dtype, device=torch_device)
 
-    adjacency = MeshAdjacency.from_faces(faces)
-    timer = timer or StageTimer(sync=torch_device.type == "cuda")
-    pose = Similarity()
-    if align != "none":
-        with timer("alignment"):
-            unit_camera = camera_in_frame(camera, frame)
-            guess = _centring_guess(x0, faces, unit_camera, normal_map.mask, align == "similarity")
-            coarse = NormalMapObjective(*downsampled(target, mask, unit_camera, ALIGN_SIZE), faces, silhouette_weight,
-                                        adjacency)
-            pose, x0 = _align(x0, coarse, space, guess, align == "similarity", unit_camera.rotation[2].to(dtype))
-    region_faces = None if region is None else torch.as_tensor(region_triangles(model, region), device=torch_device)
-    objective = NormalMapObjective(target, mask, camera_in_frame(camera, frame, pose), faces,
-                                   silhouette_weight if region is None else 0.0, adjacency, region_faces)
-    def to_world(x: torch.Tensor) -> np.ndarray:
-        return frame.from_unit(pose.apply(x.detach().cpu().double().numpy()))
+        adjacency = MeshAdjacency.from_faces(faces)
+        timer = timer or StageTimer(sync=torch_device.type == "cuda")
+        pose = Similarity()
+        if align != "none":
+            with timer("alignment"):
+                unit_camera = camera_in_frame(camera, frame)
+                guess = _centring_guess(x0, faces, unit_camera, normal_map.mask, align == "similarity")
+                coarse = NormalMapObjective(*downsampled(target, mask, unit_camera, ALIGN_SIZE), faces,
+                                            silhouette_weight, adjacency)
+                pose, x0 = _align(x0, coarse, space, guess, align == "similarity", unit_camera.rotation[2].to(dtype))
+        region_faces = None if region is None else torch.as_tensor(region_triangles(model, region),
+                                                                   device=torch_device)
+        objective = NormalMapObjective(target, mask, camera_in_frame(camera, frame, pose), faces,
+                                       silhouette_weight if region is None else 0.0, adjacency, region_faces)
+        def to_world(x: torch.Tensor) -> np.ndarray:
+            return frame.from_unit(pose.apply(x.detach().cpu().double().numpy()))
 
-    snapshot = None if on_snapshot is None else lambda it, x: on_snapshot(it, to_world(x))
-    x, done, loss = x0, 0, {}
-    for settings in stages:
-        param, optimizer = build(settings, space, x)
-        result = run_fit(param, optimizer, objective, settings.iterations, on_record=on_record,
-                         timer=timer, first_iteration=done, on_snapshot=snapshot)
-        x, done, loss = result.vertices, done + settings.iterations, result.loss
-    vertices = to_world(x)
-    to_unit = Similarity(1.0 / frame.scale, np.eye(3), -frame.center / frame.scale)
-    from_unit = Similarity(frame.scale, np.eye(3), frame.center)
-    return Reconstruction(vertices, compose(from_unit, compose(pose, to_unit)), stages, loss, time.perf_counter() - started, dict(timer.seconds))
+        snapshot = None if on_snapshot is None else lambda it, x: on_snapshot(it, to_world(x))
+        result = run_stages(stages, space, objective, x0, on_record=on_record, on_snapshot=snapshot, timer=timer)
+        vertices = to_world(result.vertices)
+        to_unit = Similarity(1.0 / frame.scale, np.eye(3), -frame.center / frame.scale)
+        from_unit = Similarity(frame.scale, np.eye(3), frame.center)
+        return Reconstruction(vertices, compose(from_unit, compose(pose, to_unit)), stages, result.loss,
+                              time.perf_counter() - started, dict(timer.seconds))
 
 
 def downsampled(normals: torch.Tensor, mask: torch.Tensor, camera: Camera, size: int

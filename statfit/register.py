@@ -12,11 +12,13 @@ import torch
 from statfit.align import Similarity, icp, initial_guess, umeyama
 from statfit.closest import ClosestPointQuery
 from statfit.errors import StatfitError
-from statfit.fit import StageTimer, run_fit
+from statfit.fit import StageTimer
 from statfit.frame import Frame
-from statfit.methods import FitSpace, Settings, build, resolve
+from statfit.methods import FitSpace, Settings, resolve
 from statfit.model import StatModel, region_triangles
 from statfit.objectives.scan import ScanObjective
+from statfit.stages import run_stages
+from statfit.threads import choose_threads, intra_op_threads
 
 ALIGNMENTS = ("none", "rigid", "similarity")
 # A scan whose extent differs from the model's by more than this factor is taken to be in other units.
@@ -39,6 +41,7 @@ class Registration:
     loss: dict[str, float]
     seconds: float
     stage_seconds: dict[str, float] = field(default_factory=dict)
+    iterations: int = 0
 
 
 def check_scan(points: np.ndarray, source: str = "scan") -> np.ndarray:
@@ -119,7 +122,8 @@ def register(model: StatModel, points: np.ndarray, method: str = "default", *, p
              on_record: Callable[[int, dict[str, float]], None] | None = None,
              timer: StageTimer | None = None, stages: tuple[Settings, ...] | None = None,
              region: str | None = None, landmarks: np.ndarray | None = None,
-             on_snapshot: Callable[[int, np.ndarray], None] | None = None, **overrides: Any) -> Registration:
+             on_snapshot: Callable[[int, np.ndarray], None] | None = None, threads: int | None = None,
+             **overrides: Any) -> Registration:
     """Fit ``model`` to the scan ``points`` (M, 3) with ``method``.
 
     ``region`` names a stored vertex subset: only scan points whose closest surface point lies on
@@ -127,7 +131,8 @@ def register(model: StatModel, points: np.ndarray, method: str = "default", *, p
     ``landmarks`` (L, 3), the scan's points for the model's landmarks (NaN = missing), pre-align the
     scan by a similarity first (refined by ICP when ``align`` is rigid or similarity).
     ``on_snapshot(iteration, vertices)`` receives the current vertices (N, 3), in the scan's frame,
-    every 10 iterations (e.g. to trace the error against a ground truth).
+    every 10 iterations (e.g. to trace the error against a ground truth). ``threads``: torch
+    intra-op threads for the fit (default: chosen from the model's size, :mod:`statfit.threads`).
 
     ``overrides`` (iterations, lr, beta, power, lam, laplacian, solver, mode_gain) replace the
     method's settings; ``stages`` replaces the method altogether by an explicit pipeline. Warns (StatfitWarning) when the scan is far from the model with align='none'.
@@ -135,32 +140,29 @@ def register(model: StatModel, points: np.ndarray, method: str = "default", *, p
     points = check_scan(points)
     stages = stages or resolve(method, preset, **overrides)
     torch_device = resolve_device(device)
-    torch.manual_seed(seed)
-    started = time.perf_counter()
-    region_faces = None if region is None else torch.as_tensor(region_triangles(model, region), device=torch_device)
-    transform = prealign(model, points, align, landmarks)
-    frame = Frame.of(model.template)
-    space = fit_space(model, frame, torch_device, dtype)
-    scan = torch.as_tensor(frame.to_unit(transform.inverse_apply(points)), dtype=dtype, device=torch_device)
-    objective = ScanObjective(scan, ClosestPointQuery(model.faces, model.num_vertices, k=2, device=torch_device),
-                              refresh_every=refresh_every, trim=trim, region_faces=region_faces)
-    median = float(objective.refresh(space.mean).distance.median())
-    if objective.kept == 0:
-        raise StatfitError(f"no scan point lies closest to the region {region!r}: is the scan of another part?")
-    if align == "none" and landmarks is None and median > FAR_DISTANCE:
-        warnings.warn(f"the scan is far from the model (median distance {median * frame.scale:.3g}, "
-                      f"{median:.2f} model radii); consider --align rigid", StatfitWarning, stacklevel=2)
-    timer = timer or StageTimer(sync=torch_device.type == "cuda")
-    def to_scan_frame(x: torch.Tensor) -> np.ndarray:
-        return transform.apply(frame.from_unit(x.detach().cpu().double().numpy()))
+    with intra_op_threads(choose_threads(model.basis.size, threads)):
+        torch.manual_seed(seed)
+        started = time.perf_counter()
+        region_faces = None if region is None else torch.as_tensor(region_triangles(model, region),
+                                                                   device=torch_device)
+        transform = prealign(model, points, align, landmarks)
+        frame = Frame.of(model.template)
+        space = fit_space(model, frame, torch_device, dtype)
+        scan = torch.as_tensor(frame.to_unit(transform.inverse_apply(points)), dtype=dtype, device=torch_device)
+        query = ClosestPointQuery(model.faces, model.num_vertices, k=2, device=torch_device)
+        objective = ScanObjective(scan, query, refresh_every=refresh_every, trim=trim, region_faces=region_faces)
+        median = float(objective.refresh(space.mean).distance.median())
+        if objective.kept == 0:
+            raise StatfitError(f"no scan point lies closest to the region {region!r}: is the scan of another part?")
+        if align == "none" and landmarks is None and median > FAR_DISTANCE:
+            warnings.warn(f"the scan is far from the model (median distance {median * frame.scale:.3g}, "
+                          f"{median:.2f} model radii); consider --align rigid", StatfitWarning, stacklevel=2)
+        timer = timer or StageTimer(sync=torch_device.type == "cuda")
+        def to_scan_frame(x: torch.Tensor) -> np.ndarray:
+            return transform.apply(frame.from_unit(x.detach().cpu().double().numpy()))
 
-    snapshot = None if on_snapshot is None else lambda it, x: on_snapshot(it, to_scan_frame(x))
-    x, done, loss = space.mean.clone(), 0, {}
-    for settings in stages:
-        param, optimizer = build(settings, space, x)
-        objective.reset()  # a new stage starts from fresh correspondences
-        result = run_fit(param, optimizer, objective, settings.iterations, on_record=on_record,
-                         timer=timer, first_iteration=done, on_snapshot=snapshot)
-        x, done, loss = result.vertices, done + settings.iterations, result.loss
-    vertices = to_scan_frame(x)
-    return Registration(vertices, transform, stages, loss, time.perf_counter() - started, dict(timer.seconds))
+        snapshot = None if on_snapshot is None else lambda it, x: on_snapshot(it, to_scan_frame(x))
+        result = run_stages(stages, space, objective, space.mean.clone(), on_record=on_record,
+                            on_snapshot=snapshot, timer=timer)
+        return Registration(to_scan_frame(result.vertices), transform, stages, result.loss,
+                            time.perf_counter() - started, dict(timer.seconds), result.iterations)

@@ -42,6 +42,9 @@ class NormalMapObjective:
     def prepare(self, vertices: torch.Tensor, iteration: int) -> None:
         """Nothing to precompute: visibility is part of each call."""
 
+    def reset(self) -> None:
+        """Nothing is kept between calls."""
+
     def __call__(self, vertices: torch.Tensor) -> dict[str, torch.Tensor]:
         fragments = rasterize(vertices, self.faces, self.camera)
         # The normal term is evaluated on the covered pixels only (C, M), never on the whole image.

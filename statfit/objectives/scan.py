@@ -29,6 +29,7 @@ class ScanObjective:
         self.attachment: SurfacePoints | None = None
         self._keep: torch.Tensor | None = None
         self._corner_ids: torch.Tensor | None = None
+        self._normals: torch.Tensor | None = None
 
     def refresh(self, vertices: torch.Tensor) -> SurfacePoints:
         """Re-attach every scan point to its closest surface point."""
@@ -40,6 +41,8 @@ class ScanObjective:
             self._keep = self.region_faces[self.attachment.triangle]
         if self.trim > 0 and self._keep.any():
             self._keep &= dist <= torch.quantile(dist[self._keep], 1.0 - self.trim)
+        a, b, c = vertices.detach().index_select(0, self._corner_ids).view(-1, 3, 3)[self._keep].unbind(dim=1)
+        self._normals = torch.nn.functional.normalize(torch.linalg.cross(b - a, c - a), dim=-1)   # (M', 3)
         return self.attachment
 
     @property
@@ -55,9 +58,29 @@ class ScanObjective:
         if self.attachment is None or iteration % self.refresh_every == 0:
             self.refresh(vertices)
 
-    def __call__(self, vertices: torch.Tensor) -> dict[str, torch.Tensor]:
+    def _attached(self, vertices: torch.Tensor) -> torch.Tensor:
+        """The attached surface points (..., M, 3) of ``vertices`` (..., N, 3)."""
         # index_select's backward (index_add) is deterministic on the CPU; advanced indexing's is not.
-        corners = vertices.index_select(0, self._corner_ids).view(-1, 3, 3)      # (M, 3, 3)
-        surface = (corners * self.attachment.barycentric[..., None]).sum(dim=1)
-        residual = (self.points - surface)[self._keep]
+        corners = vertices.index_select(-2, self._corner_ids).view(*vertices.shape[:-2], -1, 3, 3)
+        return (corners * self.attachment.barycentric[..., None]).sum(dim=-2)
+
+    def __call__(self, vertices: torch.Tensor) -> dict[str, torch.Tensor]:
+        residual = (self.points - self._attached(vertices))[self._keep]
         return {"data": residual.square().sum(dim=1).mean()}
+
+    def residuals(self, vertices: torch.Tensor) -> torch.Tensor:
+        """Point-to-plane residuals (M',) of the M' points kept: nᵢ·(pᵢ − sᵢ), with the attached
+        triangle's normal nᵢ held from the refresh; affine in ``vertices`` (N, 3) between refreshes.
+        The first-order model of the point-to-surface distance, for Gauss–Newton: unlike
+        point-to-point residuals it lets the surface slide, so alternation converges in a few steps."""
+        offset = (self.points - self._attached(vertices))[self._keep]
+        return (offset * self._normals).sum(dim=-1)
+
+    def jacobian(self, directions: torch.Tensor) -> torch.Tensor:
+        """∂residuals/∂c (M', K) for vertices moving along K ``directions`` stored vertex-major,
+        (N, 3, K)."""
+        ids = self._corner_ids.view(-1, 3)[self._keep].reshape(-1)
+        corners = directions.index_select(0, ids).view(-1, 3, *directions.shape[1:])   # (M', 3, 3, K)
+        weights = self.attachment.barycentric[self._keep][:, :, None, None]
+        moved = (corners * weights).sum(dim=1)                                          # (M', 3, K)
+        return -(moved * self._normals[..., None]).sum(dim=1)

@@ -59,7 +59,10 @@ class VisibleL1:
         self.target = target[self.index]
 
     def prepare(self, vertices: torch.Tensor, iteration: int) -> None:
-        pass
+        """Nothing to precompute."""
+
+    def reset(self) -> None:
+        """Nothing is kept between calls."""
 
     def __call__(self, vertices: torch.Tensor) -> dict[str, torch.Tensor]:
         # index_select: its backward is deterministic, advanced indexing's is not with several threads.

@@ -1,0 +1,50 @@
+"""The stage runner: a method is a pipeline of stages, each starting where the last one ended.
+
+A stage is either gradient descent through a parametrisation (:func:`statfit.methods.build` and
+:func:`statfit.fit.run_fit`) or, for ``optimizer="gauss-newton"``, the closed-form coefficient
+solve of :mod:`statfit.gauss_newton` (objectives with affine residuals only: scan registration).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from statfit.errors import StatfitError
+from statfit.fit import Objective, Progress, Snapshot, StageTimer, run_fit
+from statfit.gauss_newton import fit_coefficients
+from statfit.methods import FitSpace, Settings, build
+
+
+@dataclass
+class PipelineResult:
+    """vertices (N, 3) in the fit frame, the last stage's loss terms, iterations run in all."""
+
+    vertices: torch.Tensor
+    loss: dict[str, float]
+    iterations: int
+
+
+def run_stages(stages: tuple[Settings, ...], space: FitSpace, objective: Objective, x0: torch.Tensor, *,
+               on_record: Progress | None = None, on_snapshot: Snapshot | None = None,
+               timer: StageTimer | None = None) -> PipelineResult:
+    """Run ``stages`` in order from vertices ``x0`` (N, 3); the objective's correspondences are
+    renewed at the start of every stage."""
+    timer = timer or StageTimer()
+    x, done, loss = x0, 0, {}
+    for settings in stages:
+        objective.reset()
+        if settings.optimizer == "gauss-newton":
+            if not hasattr(objective, "jacobian"):
+                raise StatfitError("the Gauss–Newton pca stage needs a least-squares objective (scan registration); "
+                                   "use the Adam pca stage here")
+            with timer("gauss-newton"):
+                result = fit_coefficients(space.mean, space.basis_t, space.std, objective, x, settings.iterations,
+                                          settings.noise, first_iteration=done, on_record=on_record,
+                                          on_snapshot=on_snapshot)
+        else:
+            param, optimizer = build(settings, space, x)
+            result = run_fit(param, optimizer, objective, settings.iterations, on_record=on_record, timer=timer,
+                             first_iteration=done, on_snapshot=on_snapshot)
+        x, done, loss = result.vertices, done + result.iterations, result.loss
+    return PipelineResult(x, loss, done)

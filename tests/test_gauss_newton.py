@@ -1,0 +1,93 @@
+"""The closed-form pca stage: its Jacobian, its fixed point, and what it recovers."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from statfit.closest import ClosestPointQuery
+from statfit.frame import Frame
+from statfit.gauss_newton import fit_coefficients
+from statfit.methods import resolve
+from statfit.objectives.scan import ScanObjective
+from statfit.register import fit_space, register
+from statfit.synth import scan_from_view
+
+
+def _scan_objective(model, points: np.ndarray, frame: Frame) -> ScanObjective:
+    scan = torch.as_tensor(frame.to_unit(points), dtype=torch.float64)
+    return ScanObjective(scan, ClosestPointQuery(model.faces, model.num_vertices), trim=0.0)
+
+
+def test_jacobian_matches_finite_differences_of_the_residuals(embedded_model, rng):
+    """∂r/∂c from ``jacobian`` equals central differences of ``residuals`` along each direction."""
+    frame = Frame.of(embedded_model.template)
+    space = fit_space(embedded_model, frame, torch.device("cpu"), torch.float64)
+    mesh = trimesh.Trimesh(embedded_model.shape(rng.standard_normal(embedded_model.num_modes)), embedded_model.faces,
+                           process=False)
+    objective = _scan_objective(embedded_model, mesh.sample(400, seed=3), frame)
+    objective.refresh(space.mean)
+    directions = (space.basis_t * space.std[:, None]).T.reshape(*space.mean.shape, -1).contiguous()
+    jac = objective.jacobian(directions)
+    h = 1e-6
+    for k in range(0, directions.shape[-1], 7):
+        step = h * directions[..., k]
+        numeric = (objective.residuals(space.mean + step) - objective.residuals(space.mean - step)) / (2 * h)
+        torch.testing.assert_close(jac[:, k], numeric, rtol=1e-6, atol=1e-9)
+
+
+def test_recovers_an_in_span_shape_from_a_partial_scan(embedded_model, rng):
+    """A shape inside the model seen from one side: the noise-free fit finds its coefficients."""
+    coeffs = rng.standard_normal(embedded_model.num_modes)
+    target = embedded_model.shape(coeffs)
+    points = scan_from_view(target, embedded_model.faces, rng, 3000, 30.0)
+    frame = Frame.of(embedded_model.template)
+    space = fit_space(embedded_model, frame, torch.device("cpu"), torch.float64)
+    objective = _scan_objective(embedded_model, points, frame)
+    fit = fit_coefficients(space.mean, space.basis_t, space.std, objective, space.mean, 100, noise=0.0,
+                           tolerance=1e-9)
+    error = np.linalg.norm(frame.from_unit(fit.vertices.numpy()) - target, axis=1).mean() / frame.scale
+    assert error < 1e-4
+    assert fit.iterations < 100
+    np.testing.assert_allclose(fit.coefficients.numpy(), coeffs, atol=2e-2)
+
+
+def test_prior_shrinks_towards_the_mean(embedded_model, rng):
+    """A larger noise σ weighs the prior more: the coefficients' norm falls monotonically."""
+    target = embedded_model.shape(2 * rng.standard_normal(embedded_model.num_modes))
+    points = scan_from_view(target, embedded_model.faces, rng, 2000, -20.0)
+    frame = Frame.of(embedded_model.template)
+    space = fit_space(embedded_model, frame, torch.device("cpu"), torch.float64)
+    norms = []
+    for noise in (0.0, 0.05, 0.5):
+        fit = fit_coefficients(space.mean, space.basis_t, space.std, _scan_objective(embedded_model, points, frame),
+                               space.mean, 50, noise)
+        norms.append(float(fit.coefficients.norm()))
+    assert norms[0] > norms[1] > norms[2]
+
+
+def test_pca_method_is_the_closed_form_stage_and_beats_adam_at_equal_time(embedded_model, rng):
+    """register's pca: Gauss–Newton, stops by itself, and fits closer than 200 Adam steps."""
+    (stage,) = resolve("pca")
+    assert stage.optimizer == "gauss-newton"
+    target = embedded_model.sample(rng)
+    points = scan_from_view(target, embedded_model.faces, rng, 2000, 20.0)
+    closed = register(embedded_model, points, "pca")
+    adam = register(embedded_model, points, "pca", stages=(stage.__class__("pca", 200, 0.05),))
+    assert closed.iterations < stage.iterations
+    error = lambda fit: np.linalg.norm(fit.vertices - target, axis=1).mean()  # noqa: E731
+    assert error(closed) < 0.5 * error(adam)
+
+
+def test_gauss_newton_needs_a_least_squares_objective(embedded_model):
+    from statfit.errors import StatfitError
+    from statfit.stages import run_stages
+
+    class Plain:
+        def reset(self):
+            pass
+
+    space = fit_space(embedded_model, Frame.of(embedded_model.template), torch.device("cpu"), torch.float32)
+    with pytest.raises(StatfitError, match="least-squares"):
+        run_stages(resolve("pca"), space, Plain(), space.mean)
