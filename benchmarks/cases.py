@@ -16,6 +16,16 @@ SCAN_CASES = {
     "smile": (11, "mouthSmile_R", 1.0, 0.0, 0.0),
     "brow-up": (23, "browInnerUp_L", 0.9, -40.0, 0.0),
 }
+# The registration study's other test cases and its three held-out cases (docs/studies.md §1).
+STUDY_SCAN_CASES = SCAN_CASES | {
+    "cheek-puff": (37, "cheekPuff_L", 1.0, 30.0, 15.0),
+    "mouth-left": (41, "mouthLeft", 0.8, 0.0, 15.0),
+    "eye-blink": (53, "eyeBlink_L", 1.0, -40.0, 0.0),
+    "jaw-forward": (101, "jawForward", 1.0, 20.0, 0.0),
+    "frown": (103, "mouthFrown_R", 0.9, -30.0, 10.0),
+    "nose-sneer": (107, "noseSneer_R", 1.0, 45.0, 0.0),
+}
+HELD_OUT_SCAN_CASES = ("jaw-forward", "frown", "nose-sneer")
 NORMAL_CASES = {
     "jaw-open": (3, "jawOpen", 0.8, 20.0, 0.0),
     "smile": (11, "mouthSmile_R", 1.0, 0.0, 0.0),
@@ -58,7 +68,7 @@ def scan_case(name: str) -> ScanCase:
     from statfit.metrics import observed_vertices
     from statfit.synth import scan_from_view
 
-    seed, expression, weight, yaw, pitch = SCAN_CASES[name]
+    seed, expression, weight, yaw, pitch = STUDY_SCAN_CASES[name]
     target, rng = _target(seed, expression, weight)
     points = scan_from_view(target, ict_model().faces, rng, 4300, yaw, pitch)
     return ScanCase(name, target, points, observed_vertices(target, points))

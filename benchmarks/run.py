@@ -5,7 +5,9 @@ under docs/img/.
 
 Parts: filter_scaling (filter step time vs mesh size), convergence (error vs iteration and time per
 method), peers (largesteps, trimesh's non-rigid ICP, pycpd on the same scans), end_to_end (the two
-CLI jobs per method, with peak memory), inpainting (texture inpainting per-step time at 1024²).
+CLI jobs per method, with peak memory), inpainting (texture inpainting per-step time at 1024²),
+register_speed (default / fast / pca seconds on 1, 2 and the chosen thread count, quiet and with a
+busy core, beside their errors on the nine study cases).
 ``--quick`` runs small sizes and few iterations (a few minutes on 2 cores): it checks that everything
 runs; its numbers are not the ones to quote. Raw numbers go to benchmarks/results/<part>[_quick].json.
 The ICT-FaceKit data must be at ../shared/data/ict-face (the parts on the ICT head need it).
@@ -22,8 +24,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import ICT_MODEL, ROOT, Section, machine, save_json  # noqa: E402
 
-PARTS = ("filter_scaling", "convergence", "peers", "end_to_end", "inpainting")
-NEEDS_ICT = ("convergence", "peers", "end_to_end")
+PARTS = ("filter_scaling", "convergence", "peers", "end_to_end", "inpainting", "register_speed")
+NEEDS_ICT = ("convergence", "peers", "end_to_end", "register_speed")
 
 
 def run_part(name: str, quick: bool, device: str, image_dir: Path) -> Section:

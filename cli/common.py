@@ -22,9 +22,9 @@ ModelOption = typer.Option(None, "--model", "-m", help="Model npz (v_template, f
                            "once and cached in $STATFIT_CACHE_DIR (default ~/.cache/statfit). "
                            "Default: the embedded synthetic head.", show_default=False)
 KOption = typer.Option(None, "--k", help="Use only the first K modes of the model.", show_default=False)
-MethodOption = typer.Option("default", help="default (the measured best pipeline), fast (register only: "
-                            "closed-form pca + a short filtered refinement, ~15x sooner), statistical, hybrid, "
-                            "laplacian, pca, regularized or none.")
+MethodOption = typer.Option("default", help="default (the measured best pipeline), statistical, hybrid, "
+                            "laplacian, pca (register: closed-form Gauss-Newton, ~15x sooner than default), "
+                            "regularized or none.")
 PresetOption = typer.Option("tuned", help="tuned (our measured defaults) or paper (the paper's settings, exactly).")
 DeviceOption = typer.Option("cpu", help="auto, cpu or cuda.")
 ThreadsOption = typer.Option(None, help="CPU threads for the fit. Default: 1 for head-sized models (a second "

@@ -6,6 +6,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from statfit.methods import resolve
 from statfit.metrics import evaluate, observed_vertices
 from statfit.register import register as fit_scan
 from statfit.synth import sample_target, scan_from_view
@@ -41,7 +42,8 @@ def demo(
     table.add_row("(template)", *(f"{base[k]['mean'] * unit:.2f}" for k in ("all", "observed", "unobserved",
                                                                           "observed_surface")), "-")
     for method in DEMO_METHODS:
-        with progress_bar(iterations or 1, method, not quiet) as advance:
+        total = sum(stage.iterations for stage in resolve(method, iterations=iterations))
+        with progress_bar(total, method, not quiet) as advance:
             result = fit_scan(model, points, method, iterations=iterations, on_record=advance, seed=seed)
         report = evaluate(result.vertices, target, model.faces, observed)
         table.add_row(method, *(f"{report[k]['mean'] * unit:.2f}" for k in ("all", "observed", "unobserved",

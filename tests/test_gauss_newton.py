@@ -45,7 +45,7 @@ def test_recovers_an_in_span_shape_from_a_partial_scan(embedded_model, rng):
     frame = Frame.of(embedded_model.template)
     space = fit_space(embedded_model, frame, torch.device("cpu"), torch.float64)
     objective = _scan_objective(embedded_model, points, frame)
-    fit = fit_coefficients(space.mean, space.basis_t, space.std, objective, space.mean, 100, noise=0.0,
+    fit = fit_coefficients(space.mean, space.basis_t, space.std, objective, space.mean, 100, noise=0.0, levels=1,
                            tolerance=1e-9)
     error = np.linalg.norm(frame.from_unit(fit.vertices.numpy()) - target, axis=1).mean() / frame.scale
     assert error < 1e-4
@@ -62,9 +62,22 @@ def test_prior_shrinks_towards_the_mean(embedded_model, rng):
     norms = []
     for noise in (0.0, 0.05, 0.5):
         fit = fit_coefficients(space.mean, space.basis_t, space.std, _scan_objective(embedded_model, points, frame),
-                               space.mean, 50, noise)
+                               space.mean, 50, noise, levels=1)
         norms.append(float(fit.coefficients.norm()))
     assert norms[0] > norms[1] > norms[2]
+
+
+def test_continuation_relaxes_the_prior_to_the_final_noise(embedded_model, rng):
+    """The path ends where a fit at the final σ that starts at the path's end would stay."""
+    target = embedded_model.shape(1.5 * rng.standard_normal(embedded_model.num_modes))
+    points = scan_from_view(target, embedded_model.faces, rng, 2000, 10.0)
+    frame = Frame.of(embedded_model.template)
+    space = fit_space(embedded_model, frame, torch.device("cpu"), torch.float64)
+    path = fit_coefficients(space.mean, space.basis_t, space.std, _scan_objective(embedded_model, points, frame),
+                            space.mean, 200, 0.01, levels=5, tolerance=1e-8)
+    again = fit_coefficients(space.mean, space.basis_t, space.std, _scan_objective(embedded_model, points, frame),
+                             path.vertices, 200, 0.01, levels=1, tolerance=1e-8)
+    np.testing.assert_allclose(path.coefficients.numpy(), again.coefficients.numpy(), atol=2e-3)  # coefficients ~1.5
 
 
 def test_pca_method_is_the_closed_form_stage_and_beats_adam_at_equal_time(embedded_model, rng):

@@ -1,0 +1,96 @@
+"""Study behind the closed-form ``pca`` stage and the ``fast`` pipeline (docs/studies.md §9).
+
+Every pipeline below fits the ICT identity model to the registration study's nine partial scans
+(six test cases, three held out; benchmarks/cases.py), one thread, one process; the all-vertex
+error (cm) and the fit's seconds go to studies/results/register_gauss_newton.json, and the table
+is printed as markdown. Results are cached per pipeline: delete the JSON to re-measure.
+
+    python studies/register_gauss_newton.py            # about 10 minutes on one core
+    python studies/register_gauss_newton.py --report   # the table from the saved results
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from cases import HELD_OUT_SCAN_CASES, STUDY_SCAN_CASES, ict_model, scan_case  # noqa: E402
+
+RESULTS = ROOT / "studies" / "results" / "register_gauss_newton.json"
+
+
+def pipelines() -> dict:
+    from statfit.methods import PIPELINES, Settings
+
+    def gn(noise: float, levels: int = 5) -> Settings:
+        return Settings("pca", 200, 0.0, optimizer="gauss-newton", noise=noise, levels=levels)
+
+    def stat(iterations: int, lr: float, beta: float, gain: float) -> Settings:
+        return Settings("statistical", iterations, lr, beta=beta, mode_gain=gain)
+
+    return {
+        "default (shipped)": PIPELINES["default"],
+        "GN σ 0, no continuation": (gn(0.0, 1),),
+        "GN σ 0.01, no continuation": (gn(0.01, 1),),
+        "GN σ 0.03, no continuation": (gn(0.03, 1),),
+        "GN σ 0.01 → stat γ 0.5 lr 0.01 300 it": (gn(0.01, 1), stat(300, 0.01, 1000.0, 0.5)),
+        "GN σ 0.03 → stat γ 1 lr 0.03 500 it": (gn(0.03, 1), stat(500, 0.03, 1000.0, 1.0)),
+        "GN σ 0.3 … 0.003, 5 levels (pca)": (gn(0.003),),
+        "GN σ 1 … 0.01, 5 levels": (gn(0.01),),
+        "GN 5 levels → stat γ 0.5 lr 0.01 300 it": (gn(0.003), stat(300, 0.01, 1000.0, 0.5)),
+        "GN 5 levels → stat γ 1 lr 0.01 300 it": (gn(0.003), stat(300, 0.01, 1000.0, 1.0)),
+        "stat γ 1 lr 0.1 600 it (from the mean)": (stat(600, 0.1, 1000.0, 1.0),),
+    }
+
+
+def measure(stages) -> dict:
+    import numpy as np
+    import torch
+
+    from statfit.register import register
+
+    torch.set_num_threads(1)
+    errors, seconds = {}, {}
+    for name in STUDY_SCAN_CASES:
+        case = scan_case(name)
+        result = register(ict_model(), case.points, stages=stages, threads=1)
+        errors[name] = float(np.linalg.norm(result.vertices - case.target, axis=1).mean())
+        seconds[name] = result.seconds
+    return {"errors": errors, "seconds": seconds}
+
+
+def report(results: dict) -> str:
+    cases = list(STUDY_SCAN_CASES)
+    test = [c for c in cases if c not in HELD_OUT_SCAN_CASES]
+    mean = lambda row, names: sum(row["errors"][c] for c in names) / len(names)  # noqa: E731
+    lines = ["| pipeline | " + " | ".join(cases) + " | mean test | mean held out | s per fit |",
+             "|---" * (len(cases) + 4) + "|"]
+    for name, row in results.items():
+        cells = " | ".join(f"{row['errors'][c]:.3f}" for c in cases)
+        per_fit = sum(row["seconds"].values()) / len(row["seconds"])
+        lines.append(f"| {name} | {cells} | {mean(row, test):.4f} | {mean(row, HELD_OUT_SCAN_CASES):.4f} | "
+                     f"{per_fit:.2f} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--report", action="store_true", help="only print the table of saved results")
+    args = parser.parse_args()
+    results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {}
+    if not args.report:
+        for name, stages in pipelines().items():
+            if name not in results:
+                print(f"{name}…", file=sys.stderr, flush=True)
+                results[name] = measure(stages)
+                RESULTS.parent.mkdir(parents=True, exist_ok=True)
+                RESULTS.write_text(json.dumps(results, indent=1))
+    print(report(results))
+
+
+if __name__ == "__main__":
+    main()
