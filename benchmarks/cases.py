@@ -76,7 +76,7 @@ def scan_case(name: str) -> ScanCase:
 
 def normal_case(name: str, size: int) -> NormalCase:
     """The named normal-map case at ``size``² pixels."""
-    from statfit.io.normalmap import NormalMap
+    from statfit.normal_map import NormalMap
     from statfit.metrics import visible_vertices
     from statfit.synth import camera_for_view, render_target
 

@@ -15,9 +15,11 @@ from typing import Any, Callable
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+# The one definition of where the shared data lie (tests and studies import it from here).
 ICT = ROOT.parent / "shared" / "data" / "ict-face"
 ICT_MODEL = ICT / "ict_face_identity.npz"
 ICT_EXPRESSIONS = ICT / "ict_face_expressions.npz"
+FIXTURES = ROOT / "tests"  # generated test data (texture_fixtures.py) that benchmarks reuse
 PACKAGES = ("torch", "numpy", "scipy", "trimesh", "libigl", "cholespy", "largesteps", "pycpd")
 
 

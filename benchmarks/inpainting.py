@@ -2,7 +2,7 @@
 statistical and laplacian, the grid Laplacian's build and factorisation, the model-only
 reconstruction, and the hole error of each fill.
 
-The model (K modes) is built from 150 generated 128×128 face textures (statfit.texture.synthetic),
+The model (K modes) is built from 150 generated 128×128 face textures (tests/texture_fixtures.py),
 its mean and directions resampled to the benchmark size and orthonormalised by the texture-model
 loader: the per-step cost depends only on H·W·C and K, not on where the model came from. The test
 texture is a generated face with ``brow_hole``. Per-step time: the median over 10-step windows
@@ -15,7 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
-from common import Section, in_child, markdown_table
+import sys
+
+from common import FIXTURES, Section, in_child, markdown_table
+
+sys.path.insert(0, str(FIXTURES))
 
 FULL = {"size": 1024, "k": 100, "iterations": 200}
 QUICK = {"size": 256, "k": 50, "iterations": 40}
@@ -26,7 +30,7 @@ def upsampled_model(size: int, k: int):
     """A texture model of ``size``² from generated 128² faces, resampled."""
     from statfit.texture.model import build_texture_model, texture_model_from_arrays
     from statfit.texture.resample import resize_image
-    from statfit.texture.synthetic import face_textures
+    from texture_fixtures import face_textures
 
     small = build_texture_model([(str(i), t) for i, t in enumerate(face_textures(150, 128, seed=1))], (128, 128), k)
     arrays = small.npz_arrays()
@@ -48,8 +52,7 @@ def measure(quick: bool, device: str = "cpu") -> dict:
     from statfit.filters import LaplacianFilter
     from statfit.texture.grid import grid_laplacian
     from statfit.texture.inpaint import inpaint, inpaint_settings, model_reconstruction
-    from statfit.texture.metrics import hole_errors
-    from statfit.texture.synthetic import brow_hole, face_textures
+    from texture_fixtures import brow_hole, face_textures, hole_errors
 
     config = QUICK if quick else FULL
     size = config["size"]

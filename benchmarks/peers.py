@@ -26,7 +26,8 @@ from common import Section, in_child, markdown_table, save_json
 from statfit.closest import ClosestPointQuery
 from statfit.fit import run_fit
 from statfit.frame import Frame
-from statfit.methods import FitSpace, Settings, build
+from statfit.methods import build
+from statfit.settings import FitSpace, Settings
 from statfit.objectives.scan import ScanObjective
 from statfit.register import register
 

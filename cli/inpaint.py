@@ -1,19 +1,17 @@
 """``statfit inpaint``: fill the holes of a texture from a PCA texture model (or by diffusion)."""
 from __future__ import annotations
 
-import json
-import time
 from pathlib import Path
 
 import typer
 
-from statfit.io.image import image_suffix, read_charts, read_image, read_mask, write_image
-from statfit.io.jsonlog import JsonLinesLog, versions
-from statfit.io.mesh import check_writable, write_atomic
+from statfit.io.image import encoded_image, image_suffix, read_charts, read_image, read_mask
+from statfit.io.mesh import check_writable
 from statfit.register import resolve_device
 from statfit.texture.inpaint import inpaint as fill, inpaint_settings
 from statfit.texture.model import load_texture_model
-from statfit_cli.common import DeviceOption, JsonOption, LogOption, QuietOption, printed_warnings, progress_bar
+from statfit_cli.common import DeviceOption, JsonOption, LogOption, QuietOption
+from statfit_cli.runner import finish, fit_run
 
 
 def inpaint(
@@ -72,32 +70,18 @@ def inpaint(
     visible = read_mask(mask) != mask_invert
     labels = read_charts(charts) if charts is not None else None
     model = load_texture_model(model_path) if model_path is not None else None
-    started = time.perf_counter()
-    record = JsonLinesLog(log)
-    record.write("header", command="inpaint", method=method, settings=settings.describe(), input=str(image_path),
-                 mask=str(mask), mask_invert=mask_invert, model=str(model_path) if model_path else None,
-                 modes=model.num_modes if model else 0, size=list(image.shape), start=start, resize=resize,
-                 charts=str(charts) if charts else None, visible_pixels=int(visible.sum()),
-                 device=str(torch_device), versions=versions())
-    with progress_bar(settings.iterations, image_path.name, not quiet) as advance:
-        def on_record(iteration: int, terms: dict[str, float]) -> None:
-            advance(iteration, terms)
-            record.write("record", iteration=iteration, **terms, elapsed=time.perf_counter() - started)
-
-        with printed_warnings():
-            result = fill(image, visible, method, model, settings=settings, start=start, charts=labels, resize=resize,
-                          device=torch_device, on_record=on_record)
+    header = dict(method=method, settings=settings.describe(), input=str(image_path), mask=str(mask),
+                  mask_invert=mask_invert, model=str(model_path) if model_path else None,
+                  modes=model.num_modes if model else 0, size=list(image.shape), start=start, resize=resize,
+                  charts=str(charts) if charts else None, visible_pixels=int(visible.sum()), device=str(torch_device))
+    with fit_run("inpaint", log, image_path.name, settings.iterations, quiet, **header) as run:
+        result = fill(image, visible, method, model, settings=settings, start=start, charts=labels, resize=resize,
+                      device=torch_device, on_record=run.on_record)
     summary = {"input": str(image_path), "output": str(out), "method": method, "iterations": settings.iterations,
                "width": image.shape[1], "height": image.shape[0], "channels": image.shape[2],
                "hole_pixels": int((~visible).sum()), "final_loss": result.loss, "seconds": result.seconds}
-    record.write("summary", **summary)
-    preview_bytes = None
+    outputs = {out: encoded_image(result.result, image_suffix(out))}
     if preview is not None:
         from statfit.texture.preview import preview_png
-        preview_bytes = preview_png(image, visible, result.result, result.model_only)
-    write_image(out, result.result)
-    if preview_bytes is not None:
-        write_atomic(preview, preview_bytes)
-    record.close()
-    if json_out:
-        print(json.dumps(summary))
+        outputs[preview] = preview_png(image, visible, result.result, result.model_only)
+    finish(run, summary, outputs, json_out)

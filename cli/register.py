@@ -1,23 +1,20 @@
 """``statfit register``: fit the model's template to one or more partial scans."""
 from __future__ import annotations
 
-import json
-import time
 from pathlib import Path
 
 import typer
 
 from statfit.errors import StatfitError
-from statfit.io.jsonlog import JsonLinesLog, versions
-from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_points, write_atomic
+from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_points
 from statfit.io.landmarks import read_landmarks
 from statfit.methods import resolve
-from statfit.model import region_triangles
-from statfit.register import landmark_alignment, register as fit_scan, resolve_device
+from statfit.register import register as fit_scan, resolve_device
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
                                 LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
                                 PowerOption, PresetOption, QuietOption, SeedOption, ThreadsOption, open_model,
-                                printed_warnings, progress_bar, setting_overrides)
+                                setting_overrides)
+from statfit_cli.runner import finish, fit_run
 
 
 def _targets(scans: list[str], out: str | None, out_dir: Path | None, log: Path | None
@@ -84,10 +81,6 @@ def register(
         statfit register scan.ply --model flame.npz --region face --landmarks scan_landmarks.txt
     """
     overrides = setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain)
-    if not 0 <= trim < 1:
-        raise StatfitError("--trim must lie in [0, 1)")
-    if refresh < 1:
-        raise StatfitError("--refresh must be at least 1")
     stages = resolve(method, preset, **overrides)
     torch_device = resolve_device(device)
     targets = _targets(scans, out, out_dir, log)
@@ -106,34 +99,19 @@ def register(
         raise StatfitError("--landmarks belong to one scan; fit several scans one by one")
     model = open_model(model_path, k)
     scan_landmarks = read_landmarks(landmarks) if landmarks is not None else None
-    if region is not None:
-        region_triangles(model, region)
-    if scan_landmarks is not None:
-        landmark_alignment(model, scan_landmarks)
     total = sum(s.iterations for s in stages)
     for scan, target, log_path in targets:
         points = read_points(scan)
-        started = time.perf_counter()
-        record = JsonLinesLog(log_path)
-        record.write("header", command="register", method=method, preset=preset,
-                     stages=[s.describe() for s in stages], model=model.source, modes=model.num_modes,
-                     input=scan, points=len(points), align=align, device=str(torch_device), threads=threads, seed=seed,
-                     refresh=refresh, trim=trim, region=region, landmarks=str(landmarks) if landmarks else None,
-                     versions=versions())
-        with progress_bar(total, Path(scan).name if scan != "-" else "stdin", not quiet) as advance:
-            def on_record(iteration: int, terms: dict[str, float]) -> None:
-                advance(iteration, terms)
-                record.write("record", iteration=iteration, **terms, elapsed=time.perf_counter() - started)
-
-            with printed_warnings():
-                result = fit_scan(model, points, stages=stages, align=align, device=str(torch_device),
-                                  refresh_every=refresh, trim=trim, seed=seed, on_record=on_record,
-                                  region=region, landmarks=scan_landmarks, threads=threads)
+        header = dict(method=method, preset=preset, stages=[s.describe() for s in stages], model=model.source,
+                      modes=model.num_modes, input=scan, points=len(points), align=align, device=str(torch_device),
+                      threads=threads, seed=seed, refresh=refresh, trim=trim, region=region,
+                      landmarks=str(landmarks) if landmarks else None)
+        label = Path(scan).name if scan != "-" else "stdin"
+        with fit_run("register", log_path, label, total, quiet, **header) as run:
+            result = fit_scan(model, points, stages=stages, align=align, device=str(torch_device),
+                              refresh_every=refresh, trim=trim, seed=seed, on_record=run.on_record,
+                              region=region, landmarks=scan_landmarks, threads=threads)
         summary = {"input": scan, "output": target, "method": method, "iterations": result.iterations,
                    "final_loss": result.loss, "seconds": result.seconds,
-                   "stage_seconds": result.stage_seconds, "model_to_scan": result.transform.as_matrix()}
-        record.write("summary", **summary)
-        write_atomic(target, mesh_bytes(result.vertices, model.faces, mesh_format(target)))
-        record.close()
-        if json_out:
-            print(json.dumps(summary))
+                   "stage_seconds": result.stage_seconds, "model_to_scan": result.transform.as_matrix().tolist()}
+        finish(run, summary, {target: mesh_bytes(result.vertices, model.faces, mesh_format(target))}, json_out)

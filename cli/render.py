@@ -1,8 +1,6 @@
 """``statfit render``: fit the model's template to one normal map (inverse rendering)."""
 from __future__ import annotations
 
-import json
-import time
 from pathlib import Path
 
 import typer
@@ -10,17 +8,16 @@ import typer
 from statfit.errors import StatfitError
 from statfit.inverse_render import camera_space_normals, reconstruct
 from statfit.io.image import read_mask
-from statfit.io.jsonlog import JsonLinesLog, versions
-from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_mesh, write_atomic
+from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_mesh
 from statfit.io.normalmap import apply_mask, camera_for_map, read_normal_map
 from statfit.methods import resolve
-from statfit.model import region_triangles
 from statfit.objectives.normals import SILHOUETTE_WEIGHT
 from statfit.register import resolve_device
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
                                 LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
                                 PowerOption, PresetOption, QuietOption, SeedOption, ThreadsOption, open_model,
-                                printed_warnings, progress_bar, setting_overrides)
+                                setting_overrides)
+from statfit_cli.runner import finish, fit_run
 
 
 def render(
@@ -86,44 +83,28 @@ def render(
         normal_map = apply_mask(normal_map, read_mask(mask), str(mask))
     camera = camera_for_map(normal_map, camera_path, normal_map_path)
     model = open_model(model_path, k)
-    if region is not None:
-        region_triangles(model, region)
     start = None
     if init is not None:
         start, faces = read_mesh(init)
         if faces.shape != model.faces.shape or (faces != model.faces).any():
             raise StatfitError(f"{init} does not have the model's topology")
-    total = sum(s.iterations for s in stages)
-    started = time.perf_counter()
-    record = JsonLinesLog(log)
-    record.write("header", command="render", method=method, preset=preset, stages=[s.describe() for s in stages],
-                 model=model.source, modes=model.num_modes, input=str(normal_map_path), camera=camera.to_dict(),
-                 pixels=int(normal_map.mask.sum()), align=align, init=str(init) if init else None,
-                 normal_space=normal_space, normal_convention=normal_convention,
-                 silhouette_weight=silhouette_weight, region=region, device=str(torch_device), threads=threads, seed=seed,
-                 versions=versions())
-    with progress_bar(total, normal_map_path.name, not quiet) as advance:
-        def on_record(iteration: int, terms: dict[str, float]) -> None:
-            advance(iteration, terms)
-            record.write("record", iteration=iteration, **terms, elapsed=time.perf_counter() - started)
-
-        with printed_warnings():
-            result = reconstruct(model, normal_map, camera, stages=stages, normal_space=normal_space,
-                                 normal_convention=normal_convention, align=align, init=start,
-                                 device=str(torch_device), silhouette_weight=silhouette_weight, seed=seed,
-                                 on_record=on_record, region=region, threads=threads)
-    summary = {"input": str(normal_map_path), "output": str(out), "method": method, "iterations": total,
+    header = dict(method=method, preset=preset, stages=[s.describe() for s in stages], model=model.source,
+                  modes=model.num_modes, input=str(normal_map_path), camera=camera.to_dict(),
+                  pixels=int(normal_map.mask.sum()), align=align, init=str(init) if init else None,
+                  normal_space=normal_space, normal_convention=normal_convention,
+                  silhouette_weight=silhouette_weight, region=region, device=str(torch_device), threads=threads,
+                  seed=seed)
+    with fit_run("render", log, normal_map_path.name, sum(s.iterations for s in stages), quiet, **header) as run:
+        result = reconstruct(model, normal_map, camera, stages=stages, normal_space=normal_space,
+                             normal_convention=normal_convention, align=align, init=start,
+                             device=str(torch_device), silhouette_weight=silhouette_weight, seed=seed,
+                             on_record=run.on_record, region=region, threads=threads)
+    summary = {"input": str(normal_map_path), "output": str(out), "method": method, "iterations": result.iterations,
                "final_loss": result.loss, "seconds": result.seconds, "stage_seconds": result.stage_seconds,
-               "model_to_world": result.pose.as_matrix()}
-    record.write("summary", **summary)
-    preview_bytes = None
+               "model_to_world": result.transform.as_matrix().tolist()}
+    outputs = {out: mesh_bytes(result.vertices, model.faces, mesh_format(out))}
     if preview is not None:
         from statfit.preview import preview_png  # matplotlib is imported only when a preview is asked for
         target = camera_space_normals(normal_map, camera, normal_space, normal_convention)
-        preview_bytes = preview_png(target, normal_map.mask, result.vertices, model.faces, camera)
-    write_atomic(out, mesh_bytes(result.vertices, model.faces, mesh_format(out)))
-    if preview_bytes is not None:
-        write_atomic(preview, preview_bytes)
-    record.close()
-    if json_out:
-        print(json.dumps(summary))
+        outputs[preview] = preview_png(target, normal_map.mask, result.vertices, model.faces, camera)
+    finish(run, summary, outputs, json_out)

@@ -11,6 +11,11 @@ from scipy.spatial.transform import Rotation
 from statfit.closest import ClosestPointQuery
 
 
+# Rigid/similarity ICP: rounds (converged well before on the tested cases) and the fraction of
+# farthest points dropped each round (a partial scan's points beyond the template's border).
+ICP_ITERATIONS = 60
+ICP_TRIM = 0.2
+
 @dataclass(frozen=True)
 class Similarity:
     """y = scale · R x + t."""
@@ -25,11 +30,12 @@ class Similarity:
     def inverse_apply(self, points: np.ndarray) -> np.ndarray:
         return (points - self.translation) @ self.rotation / self.scale
 
-    def as_matrix(self) -> list[list[float]]:
+    def as_matrix(self) -> np.ndarray:
+        """The 4 × 4 homogeneous matrix."""
         m = np.eye(4)
         m[:3, :3] = self.scale * self.rotation
         m[:3, 3] = self.translation
-        return m.tolist()
+        return m
 
 
 def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool) -> Similarity:
@@ -63,7 +69,7 @@ def _plane_step(surface: np.ndarray, normals: np.ndarray, targets: np.ndarray, w
 
 
 def icp(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, with_scale: bool,
-        iterations: int = 60, trim: float = 0.2, start: Similarity | None = None) -> Similarity:
+        iterations: int = ICP_ITERATIONS, trim: float = ICP_TRIM, start: Similarity | None = None) -> Similarity:
     """Transform mapping the mesh (``vertices``, ``faces``) onto ``points`` by trimmed
     point-to-plane ICP: each round attaches the points, mapped into the mesh's frame, to their
     closest surface points, drops the ``trim`` fraction farthest, and solves a linearised update."""

@@ -3,7 +3,8 @@
 Candidates: the triangles around the ``k`` nearest mesh vertices of each query (scipy cKDTree);
 each candidate is solved exactly (projection inside the triangle or the closest point on one of
 its edges), and the nearest wins. With k ≥ 3 this finds the true closest triangle on meshes with
-reasonably shaped triangles.
+reasonably shaped triangles; the fits use k = 2, exact for > 95% of points near a head-sized mesh
+(tests/test_geometry.py) at half the cost, and the rest land on a neighbouring triangle.
 """
 from __future__ import annotations
 

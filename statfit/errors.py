@@ -7,3 +7,7 @@ class StatfitError(Exception):
 
 class DivergenceError(StatfitError):
     """The fit produced a non-finite loss or vertex position."""
+
+
+class StatfitWarning(UserWarning):
+    """Something the user should know that does not stop the fit."""

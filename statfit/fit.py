@@ -24,11 +24,14 @@ class Objective(Protocol):
 
 
 class Parametrization(Protocol):
+    """Parameters and a differentiable map from them to the vertices (:mod:`statfit.parametrize`)."""
+
     def parameters(self) -> list[torch.Tensor]: ...
 
     def vertices(self) -> torch.Tensor: ...
 
-    def pull_gradient(self, grad_x: torch.Tensor, x: torch.Tensor) -> dict[str, float]: ...
+    def prior(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The parametrisation's own loss terms at ``x`` (for the record; their gradient is in x's)."""
 
 
 @dataclass
@@ -97,22 +100,20 @@ def _loop(param: Parametrization, optimizer: torch.optim.Optimizer, objective: O
         it = first_iteration + step
         with timer("filter"):
             x = param.vertices()
-        if not bool(torch.isfinite(x).all()):
+        if not bool(torch.isfinite(x.detach()).all()):
             raise DivergenceError(f"the fit diverged at iteration {it}: vertices are not finite (step size too large?)")
         with timer("correspondences"):
-            objective.prepare(x, it)
-        x.requires_grad_(True)
+            objective.prepare(x.detach(), it)
         with timer("loss"):
-            losses = objective(x)
+            losses = objective(x) | param.prior(x)
             loss = sum(losses.values())
         with timer("backward"):
+            optimizer.zero_grad(set_to_none=True)
             loss.backward()
-        with timer("filter"):
-            prior = param.pull_gradient(x.grad, x)
         with timer("step"):
             optimizer.step()
         if step % record_every == 0 or step == iterations - 1:
-            terms = {k: float(v.detach()) for k, v in losses.items()} | prior
+            terms = {k: float(v.detach()) for k, v in losses.items()}
             terms["total"] = sum(terms.values())
             if not math.isfinite(terms["total"]):
                 raise DivergenceError(f"the fit diverged at iteration {it}: the loss is {terms['total']}")
@@ -120,7 +121,8 @@ def _loop(param: Parametrization, optimizer: torch.optim.Optimizer, objective: O
                 on_record(it, terms)
             if on_snapshot:
                 on_snapshot(it, x.detach())
-    final = param.vertices()
+    with torch.no_grad():
+        final = param.vertices().detach()
     if not bool(torch.isfinite(final).all()):
         raise DivergenceError(f"the fit diverged at iteration {first_iteration + iterations - 1}: "
                               "vertices are not finite (step size too large?)")

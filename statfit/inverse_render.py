@@ -15,7 +15,6 @@ head radius on test cases); use similarity to estimate a scale. docs/method.md h
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import numpy as np
@@ -25,14 +24,15 @@ from statfit.align import Similarity, compose
 from statfit.errors import StatfitError
 from statfit.fit import StageTimer
 from statfit.frame import Frame
-from statfit.io.normalmap import NormalMap
-from statfit.methods import FitSpace, Settings, resolve
+from statfit.normal_map import NormalMap
+from statfit.methods import resolve
+from statfit.settings import FitSpace, Settings
 from statfit.model import StatModel, region_triangles
 from statfit.objectives.normals import SILHOUETTE_WEIGHT, NormalMapObjective
 from statfit.pose import fit_pose
-from statfit.register import UNIT_MISMATCH_FACTOR, fit_space, resolve_device
+from statfit.register import UNIT_MISMATCH_FACTOR, resolve_device
 from statfit.render import Camera, MeshAdjacency, rasterize
-from statfit.stages import run_stages
+from statfit.stages import Fit, run_stages
 from statfit.threads import choose_threads, intra_op_threads
 
 ALIGNMENTS = ("none", "rigid", "similarity")
@@ -46,20 +46,6 @@ POSE_GAIN = 0.1
 # Floats the rasteriser and objective touch per pixel and iteration (for the thread choice).
 RENDER_FLOATS_PER_PIXEL = 16
 ALIGN_SIZE = 256  # the alignment runs on the map reduced by an integer factor to about this size
-
-
-@dataclass
-class Reconstruction:
-    """Fitted vertices (N, 3) in the camera's world frame and units, and how they were obtained.
-
-    pose: the model → world transform found by the alignment (identity with align='none')."""
-
-    vertices: np.ndarray
-    pose: Similarity
-    stages: tuple[Settings, ...]
-    loss: dict[str, float]
-    seconds: float
-    stage_seconds: dict[str, float] = field(default_factory=dict)
 
 
 def camera_space_normals(normal_map: NormalMap, camera: Camera, space: str = "world",
@@ -161,7 +147,7 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
                 on_record: Callable[[int, dict[str, float]], None] | None = None,
                 timer: StageTimer | None = None, stages: tuple[Settings, ...] | None = None,
                 region: str | None = None, on_snapshot: Callable[[int, np.ndarray], None] | None = None,
-                threads: int | None = None, **overrides: Any) -> Reconstruction:
+                threads: int | None = None, **overrides: Any) -> Fit:
     """Fit ``model`` to ``normal_map`` seen by ``camera`` with ``method``.
 
     ``init`` (N, 3): start from these vertices (world frame) instead of the template.
@@ -185,13 +171,15 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
         start_shape = model.template if init is None else _checked_init(init, model)
         check_framing(start_shape, camera, normal_map.mask, align)
         frame = Frame.of(model.template)
-        space = fit_space(model, frame, torch_device, dtype)
+        space = FitSpace.of(model, frame, torch_device, dtype)
         target = torch.as_tensor(camera_space_normals(normal_map, camera, normal_space, normal_convention),
                                  dtype=dtype, device=torch_device)
         mask = torch.as_tensor(normal_map.mask, device=torch_device)
         faces = torch.as_tensor(model.faces, dtype=torch.long, device=torch_device)
         x0 = torch.as_tensor(frame.to_unit(start_shape), dtype=dtype, device=torch_device)
 
+        region_faces = None if region is None else torch.as_tensor(region_triangles(model, region),
+                                                                   device=torch_device)
         adjacency = MeshAdjacency.from_faces(faces)
         timer = timer or StageTimer(sync=torch_device.type == "cuda")
         pose = Similarity()
@@ -202,8 +190,6 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
                 coarse = NormalMapObjective(*downsampled(target, mask, unit_camera, ALIGN_SIZE), faces,
                                             silhouette_weight, adjacency)
                 pose, x0 = _align(x0, coarse, space, guess, align == "similarity", unit_camera.rotation[2].to(dtype))
-        region_faces = None if region is None else torch.as_tensor(region_triangles(model, region),
-                                                                   device=torch_device)
         objective = NormalMapObjective(target, mask, camera_in_frame(camera, frame, pose), faces,
                                        silhouette_weight if region is None else 0.0, adjacency, region_faces)
         def to_world(x: torch.Tensor) -> np.ndarray:
@@ -214,8 +200,8 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
         vertices = to_world(result.vertices)
         to_unit = Similarity(1.0 / frame.scale, np.eye(3), -frame.center / frame.scale)
         from_unit = Similarity(frame.scale, np.eye(3), frame.center)
-        return Reconstruction(vertices, compose(from_unit, compose(pose, to_unit)), stages, result.loss,
-                              time.perf_counter() - started, dict(timer.seconds))
+        return Fit(vertices, compose(from_unit, compose(pose, to_unit)), stages, result.loss,
+                              time.perf_counter() - started, dict(timer.seconds), result.iterations)
 
 
 def downsampled(normals: torch.Tensor, mask: torch.Tensor, camera: Camera, size: int

@@ -1,180 +1,235 @@
-"""Fitting methods: settings, presets, and construction of (parametrisation, optimiser).
+"""The registry of fitting methods: one entry per method, with how to build it and its settings.
 
-A *pipeline* is a sequence of stages; each stage's result starts the next. The paper-faithful
-methods are one stage each; ``default`` is the pipeline chosen by the study in docs/studies.md.
+A method turns (settings, the model's fit space, start vertices) into a parametrisation and an
+optimiser (:func:`build`); its entry also holds the paper's settings and our tuned settings for
+each job it serves (``register``, ``render``, ``inpaint``). A *pipeline* is a sequence of stages,
+each starting where the last ended; the ``default`` pipelines are the ones our studies chose
+(docs/studies.md). Adding a method is one :class:`Method` passed to :func:`add_method`
+(docs/method.md, "Adding a method").
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, replace
-from typing import Any
+from dataclasses import dataclass, replace
+from importlib import metadata
+from typing import Any, Callable
 
-import numpy as np
-import scipy.sparse as sp
 import torch
 
 from statfit.errors import StatfitError
 from statfit.filters import HybridFilter, IdentityFilter, LaplacianFilter, StatisticalFilter
+from statfit.fit import Parametrization
 from statfit.optim import UniformAdam
-from statfit.parametrize import FilteredVertices, PCACoefficients, RegularizedVertices
+from statfit.parametrize import Filter, FilteredVertices, PCACoefficients, RegularizedVertices
+from statfit.settings import MAX_ITERATIONS, FitSpace, Settings, check_int
 
-METHODS = ("statistical", "laplacian", "hybrid", "pca", "regularized", "none")
-
-
-@dataclass(frozen=True)
-class Settings:
-    """One optimisation stage. ``beta`` is the filter's β (statistical, hybrid) or the
-    regulariser's weight (regularized); ``mode_gain`` γ sets the filter's gain on mode j to
-    (std_j / std_1)^γ (0: the paper's filter, gain 1 on every mode). ``optimizer`` is "adam"
-    (Adam, or UniformAdam for filtered methods) or "gauss-newton" (pca only: the closed-form
-    coefficient solve, ``iterations`` an upper bound, ``noise`` σ the residual noise that weighs
-    the Gaussian prior, in fit-frame units, reached through ``levels`` continuation levels)."""
-
-    method: str
-    iterations: int
-    lr: float
-    beta: float = 30.0
-    power: float = 1.0
-    lam: float = 19.0
-    laplacian: str = "uniform"
-    solver: str = "cholespy"
-    mode_gain: float = 0.0
-    betas: tuple[float, float] = (0.9, 0.999)
-    optimizer: str = "adam"
-    noise: float = 0.003
-    levels: int = 5
-
-    def describe(self) -> dict[str, Any]:
-        """The settings as a plain dict (for logs)."""
-        return asdict(self)
-
-
-JOBS = ("register", "render")
+JOBS = ("register", "render", "inpaint")
 # The paper's iteration counts per job: 500 for scan registration, 3000 for inverse rendering.
 PAPER_ITERATIONS = {"register": 500, "render": 3000}
-
-# The paper's settings (Nicolet-style UniformAdam, lr 0.01; β 30 filter / 10 regulariser; λ 19).
-PAPER: dict[str, Settings] = {
-    "statistical": Settings("statistical", 500, 0.01, beta=30.0),
-    "laplacian": Settings("laplacian", 500, 0.01, lam=19.0),
-    "hybrid": Settings("hybrid", 500, 0.01, beta=30.0, lam=19.0),
-    "regularized": Settings("regularized", 500, 0.01, beta=10.0),
-    "pca": Settings("pca", 500, 5.0),
-    "none": Settings("none", 500, 0.01),
-}
-
 # The Gauss–Newton pca stage stops by itself (31–50 iterations on the study's cases, docs/studies.md
 # §9); this only bounds it.
 GAUSS_NEWTON_ITERATIONS = 200
 
-# Our defaults: each method's best settings in the registration study (docs/studies.md),
-# measured on ICT partial scans with expressions outside the model. ``statistical`` here uses
-# mode gains (γ = 1); ``--preset paper`` (or ``mode_gain=0``) gives the paper's filter.
-TUNED: dict[str, Settings] = {
-    "statistical": Settings("statistical", 1000, 0.05, beta=1000.0, mode_gain=1.0),
-    "laplacian": Settings("laplacian", 1000, 0.1, lam=300.0),
-    "hybrid": Settings("hybrid", 1000, 0.03, beta=30.0, lam=19.0),
-    "regularized": Settings("regularized", 1000, 0.1, beta=30.0),
-    "pca": Settings("pca", GAUSS_NEWTON_ITERATIONS, 0.0, optimizer="gauss-newton", noise=0.003),
-    "none": Settings("none", 1000, 0.003),
-}
-
-# Two stages of the statistical filter with β = 1000: gains ∝ std (γ = 1) find the shape in the
-# model's span, then a smaller step with gains ∝ sqrt(std) (γ = 0.5) lets low-variance modes and
-# off-model detail (expressions) in. Chosen by the study and its follow-up (docs/studies.md).
-PIPELINES: dict[str, tuple[Settings, ...]] = {
-    "default": (Settings("statistical", 4000, 0.03, beta=1000.0, mode_gain=1.0),
-                Settings("statistical", 1333, 0.01, beta=1000.0, mode_gain=0.5)),
-}
-
-
-# Inverse rendering (one normal map): each method's best settings in the rendering study
-# (docs/studies.md §5), 3000 iterations each as in the paper. The default is the hybrid filter
-# with mode gains ∝ std (γ = 1): the lowest error over all vertices of everything tried.
-RENDER_TUNED: dict[str, Settings] = {
-    "statistical": Settings("statistical", 3000, 0.01, beta=1000.0, mode_gain=1.0),
-    "laplacian": Settings("laplacian", 3000, 0.003, lam=19.0),
-    "hybrid": Settings("hybrid", 3000, 0.01, beta=30.0, lam=19.0, mode_gain=1.0),
-    "regularized": Settings("regularized", 3000, 0.01, beta=10.0),
-    "pca": Settings("pca", 3000, 0.05),
-    "none": Settings("none", 3000, 0.001),
-}
-RENDER_PIPELINES: dict[str, tuple[Settings, ...]] = {"default": (RENDER_TUNED["hybrid"],)}
+Builder = Callable[[Settings, FitSpace, torch.Tensor], tuple[Parametrization, torch.optim.Optimizer]]
 
 
 @dataclass(frozen=True)
-class FitSpace:
-    """The model in the fit frame, as tensors: mean (N, c), basis_t = Uᵀ (K, cN), std (K,); the
-    Laplacian comes from the mesh ``faces``, or is given ready (``laplacian``, e.g. an image grid's)."""
+class Method:
+    """A fitting method: ``build`` makes its parametrisation and optimiser; ``paper`` is the
+    paper's setting (None: not in the paper); ``tuned`` our setting per job (a job without one
+    does not offer the method); ``needs_model``: whether it uses the model's modes."""
 
-    mean: torch.Tensor
-    basis_t: torch.Tensor
-    std: torch.Tensor
-    faces: np.ndarray | None
-    laplacian: sp.spmatrix | None = None
+    name: str
+    build: Builder
+    tuned: dict[str, Settings]
+    paper: Settings | None = None
+    needs_model: bool = True
+    summary: str = ""
+
+
+def filtered_method(make_filter: Callable[[Settings, FitSpace, torch.Tensor], Filter]) -> Builder:
+    """The builder of a filtered method, ``x = x0 + F u`` with UniformAdam on u."""
+    def build(settings: Settings, space: FitSpace, x0: torch.Tensor):
+        param = FilteredVertices(x0, make_filter(settings, space, x0))
+        return param, UniformAdam(param.parameters(), lr=settings.lr, betas=settings.adam_betas)
+
+    return build
+
+
+def mode_gains(settings: Settings, space: FitSpace) -> torch.Tensor | None:
+    """The filter's gain per mode, (std_j / std_1)^γ, or None for γ = 0 (gain 1 on every mode)."""
+    return (space.std / space.std[0]) ** settings.mode_gain if settings.mode_gain else None
+
+
+def statistical_filter(settings: Settings, space: FitSpace, x0: torch.Tensor) -> Filter:
+    return StatisticalFilter(space.basis_t, settings.beta, settings.power, mode_gains(settings, space))
+
+
+def laplacian_filter(settings: Settings, space: FitSpace, x0: torch.Tensor) -> LaplacianFilter:
+    if space.laplacian_matrix is not None:
+        return LaplacianFilter.from_laplacian(space.laplacian_matrix, settings.lam, settings.solver, x0.dtype,
+                                              x0.device)
+    return LaplacianFilter(x0.detach().cpu().double().numpy(), space.faces, settings.lam, settings.laplacian,
+                           settings.solver, x0.dtype, x0.device)
+
+
+def hybrid_filter(settings: Settings, space: FitSpace, x0: torch.Tensor) -> Filter:
+    return HybridFilter(space.basis_t, settings.beta, laplacian_filter(settings, space, x0), settings.power,
+                        mode_gains(settings, space))
+
+
+def _pca(settings: Settings, space: FitSpace, x0: torch.Tensor):
+    scaled = space.basis_t * space.std[:, None]
+    start = torch.mv(space.basis_t, (x0 - space.mean).reshape(-1)) / space.std
+    param = PCACoefficients(space.mean, scaled, start)
+    return param, torch.optim.Adam(param.parameters(), lr=settings.lr, betas=settings.adam_betas)
+
+
+def _regularized(settings: Settings, space: FitSpace, x0: torch.Tensor):
+    param = RegularizedVertices(x0, space.mean, space.basis_t, settings.beta)
+    return param, UniformAdam(param.parameters(), lr=settings.lr, betas=settings.adam_betas)
+
+
+def _none(settings: Settings, space: FitSpace, x0: torch.Tensor):
+    param = FilteredVertices(x0, IdentityFilter())
+    return param, torch.optim.Adam(param.parameters(), lr=settings.lr, betas=settings.adam_betas)
+
+
+METHODS: dict[str, Method] = {}
+# Other packages add methods by naming a module under this entry-point group; it calls add_method.
+PLUGIN_GROUP = "statfit.methods"
+_plugins: list[str] = []
+
+
+def add_method(method: Method) -> None:
+    """Register ``method`` under its name (replacing one of the same name)."""
+    for job in method.tuned:
+        if job not in JOBS:
+            raise StatfitError(f"method {method.name!r}: unknown job {job!r}; choose one of {', '.join(JOBS)}")
+    METHODS[method.name] = method
+
+
+def load_plugins() -> list[str]:
+    """Import, once, every module declared under the ``statfit.methods`` entry-point group (each
+    registers its methods); returns their names."""
+    if not _plugins:
+        _plugins.append(PLUGIN_GROUP)  # loaded (even if none is installed)
+        for entry in metadata.entry_points(group=PLUGIN_GROUP):
+            try:
+                entry.load()
+            except Exception as error:  # a broken plugin must not break the built-in methods
+                raise StatfitError(f"the statfit.methods plugin {entry.name!r} ({entry.value}) failed to load: "
+                                   f"{error}") from error
+            _plugins.append(entry.name)
+    return _plugins[1:]
+
+
+# Tuned settings: each method's best in our studies (docs/studies.md: §1 registration on ICT partial
+# scans with expressions outside the model, §5 rendering, §9 the Gauss–Newton pca; inpainting:
+# docs/method.md, "Texture inpainting"). Texture defaults are the paper's lr, β and λ (β = 100 was
+# ≤ 1.3% better on faces, equal on digits; λ = 19 the Laplacian's best on both; 1000 iterations
+# were slightly worse than 300).
+for _method in (
+    Method("statistical", filtered_method(statistical_filter), summary="x = x0 + F u, F = αUUᵀ + (1 − α)I",
+           paper=Settings("statistical", 500, 0.01, beta=30.0),
+           tuned={"register": Settings("statistical", 1000, 0.05, beta=1000.0, mode_gain=1.0),
+                  "render": Settings("statistical", 3000, 0.01, beta=1000.0, mode_gain=1.0),
+                  "inpaint": Settings("statistical", 300, 0.01, beta=30.0)}),
+    Method("laplacian", filtered_method(laplacian_filter), needs_model=False,
+           summary="x = x0 + (I + λL)⁻¹ u (Nicolet et al. 2021)",
+           paper=Settings("laplacian", 500, 0.01, lam=19.0),
+           tuned={"register": Settings("laplacian", 1000, 0.1, lam=300.0),
+                  "render": Settings("laplacian", 3000, 0.003, lam=19.0),
+                  "inpaint": Settings("laplacian", 300, 0.01, lam=19.0)}),
+    Method("hybrid", filtered_method(hybrid_filter), summary="x = x0 + F u, F = αUUᵀ + (1 − α)(I + λL)⁻¹",
+           paper=Settings("hybrid", 500, 0.01, beta=30.0, lam=19.0),
+           tuned={"register": Settings("hybrid", 1000, 0.03, beta=30.0, lam=19.0),
+                  "render": Settings("hybrid", 3000, 0.01, beta=30.0, lam=19.0, mode_gain=1.0),
+                  "inpaint": Settings("hybrid", 300, 0.01, beta=30.0, lam=19.0)}),
+    Method("pca", _pca, summary="x = x̄ + U diag(std) c: the model's coefficients only",
+           paper=Settings("pca", 500, 5.0),
+           tuned={"register": Settings("pca", GAUSS_NEWTON_ITERATIONS, 0.0, optimizer="gauss-newton", noise=0.003),
+                  "render": Settings("pca", 3000, 0.05),
+                  "inpaint": Settings("pca", 300, 0.01)}),
+    Method("regularized", _regularized, summary="free x, prior β/N ‖(I − UUᵀ)(x − x̄)‖²",
+           paper=Settings("regularized", 500, 0.01, beta=10.0),
+           tuned={"register": Settings("regularized", 1000, 0.1, beta=30.0),
+                  "render": Settings("regularized", 3000, 0.01, beta=10.0)}),
+    Method("none", _none, needs_model=False, summary="free x, Adam",
+           paper=Settings("none", 500, 0.01),
+           tuned={"register": Settings("none", 1000, 0.003),
+                  "render": Settings("none", 3000, 0.001),
+                  "inpaint": Settings("none", 300, 0.01)}),
+):
+    add_method(_method)
+
+
+@dataclass(frozen=True)
+class Pipeline:
+    """Stages run in order, each from where the last ended."""
+
+    stages: tuple[Settings, ...]
+    summary: str = ""
+
+
+# register: two statistical stages with β = 1000 — gains ∝ std (γ = 1) find the shape in the model's
+# span, then a smaller step with gains ∝ sqrt(std) (γ = 0.5) lets low-variance modes and off-model
+# detail (expressions) in (docs/studies.md §1). render: the hybrid filter with mode gains (γ = 1),
+# the lowest error over all vertices of everything tried (§5). inpaint: hybrid with a model.
+PIPELINES: dict[str, dict[str, Pipeline]] = {
+    "register": {"default": Pipeline((Settings("statistical", 4000, 0.03, beta=1000.0, mode_gain=1.0),
+                                      Settings("statistical", 1333, 0.01, beta=1000.0, mode_gain=0.5)),
+                                     "the registration study's pipeline")},
+    "render": {"default": Pipeline((METHODS["hybrid"].tuned["render"],), "the rendering study's choice")},
+}
 
 
 def resolve(method: str, preset: str = "tuned", job: str = "register", **overrides: Any) -> tuple[Settings, ...]:
-    """The stages for ``method`` under ``preset`` ('tuned' or 'paper') for ``job`` ('register'
-    or 'render'), with ``overrides`` (non-None values) applied to every stage."""
+    """The stages for ``method`` (a method or a pipeline of ``job``) under ``preset`` ('tuned' or
+    'paper'), with ``overrides`` (non-None values) applied to every stage; for a pipeline,
+    ``iterations`` is the total, split in proportion to the stages' own counts."""
     if preset not in ("tuned", "paper"):
         raise StatfitError(f"unknown preset {preset!r}; choose 'tuned' or 'paper'")
     if job not in JOBS:
         raise StatfitError(f"unknown job {job!r}; choose one of {', '.join(JOBS)}")
-    pipelines = PIPELINES if job == "register" else RENDER_PIPELINES
+    load_plugins()
+    pipelines = PIPELINES.get(job, {})
+    offered = [*pipelines, *(name for name, m in METHODS.items() if job in m.tuned)]
     if method in pipelines:
         if preset == "paper":
             raise StatfitError(f"the {method!r} pipeline is ours, not the paper's; use --method statistical --preset paper")
-        stages = pipelines[method]
-    elif method in METHODS:
+        stages = pipelines[method].stages
+    elif method in offered:
         if preset == "paper":
-            stages = (replace(PAPER[method], iterations=PAPER_ITERATIONS[job]),)
+            if METHODS[method].paper is None or job not in PAPER_ITERATIONS:
+                raise StatfitError(f"the paper has no {method!r} setting for {job}")
+            stages = (replace(METHODS[method].paper, iterations=PAPER_ITERATIONS[job]),)
         else:
-            stages = ((TUNED if job == "register" else RENDER_TUNED)[method],)
+            stages = (METHODS[method].tuned[job],)
     else:
-        raise StatfitError(f"unknown method {method!r}; choose one of {', '.join((*pipelines, *METHODS))}")
+        raise StatfitError(f"unknown method {method!r} for {job}; choose one of {', '.join(offered)}")
     changes = {k: v for k, v in overrides.items() if v is not None}
-    if changes.get("iterations", 1) < 1:
-        raise StatfitError("--iterations must be at least 1")
+    if "lr" in changes and any(s.optimizer == "gauss-newton" for s in stages):
+        raise StatfitError(f"lr does not apply to the Gauss–Newton {method!r} stage (it has no step size); "
+                           "--preset paper fits the coefficients with Adam")
     if len(stages) > 1 and "iterations" in changes:
-        last = stages[-1]
-        total = sum(s.iterations for s in stages)
-        stages = tuple(replace(s, iterations=max(1, round(s.iterations * changes["iterations"] / total)))
-                       for s in stages[:-1]) + (last,)
-        spent = sum(s.iterations for s in stages[:-1])
-        stages = stages[:-1] + (replace(last, iterations=max(1, changes["iterations"] - spent)),)
-        changes.pop("iterations")
+        total = changes.pop("iterations")
+        check_int("iterations", total, 1, MAX_ITERATIONS)
+        stages = _split_iterations(stages, total)
     return tuple(replace(s, **changes) for s in stages)
 
 
-def build(settings: Settings, space: FitSpace, x0: torch.Tensor):
+def _split_iterations(stages: tuple[Settings, ...], total: int) -> tuple[Settings, ...]:
+    """``stages`` with ``total`` iterations shared in proportion to their own counts (each ≥ 1)."""
+    own = sum(s.iterations for s in stages)
+    head = tuple(replace(s, iterations=max(1, round(s.iterations * total / own))) for s in stages[:-1])
+    spent = sum(s.iterations for s in head)
+    return head + (replace(stages[-1], iterations=max(1, total - spent)),)
+
+
+def build(settings: Settings, space: FitSpace, x0: torch.Tensor) -> tuple[Parametrization, torch.optim.Optimizer]:
     """Parametrisation and optimiser for one stage, starting from vertices ``x0`` (N, 3)."""
-    if settings.method == "pca":
-        scaled = space.basis_t * space.std[:, None]
-        start = torch.mv(space.basis_t, (x0 - space.mean).reshape(-1)) / space.std
-        param = PCACoefficients(space.mean, scaled, start)
-        return param, torch.optim.Adam(param.parameters(), lr=settings.lr, betas=settings.betas)
-    if settings.method == "regularized":
-        param = RegularizedVertices(x0, space.mean, space.basis_t, settings.beta)
-        return param, UniformAdam(param.parameters(), lr=settings.lr, betas=settings.betas)
-    if settings.method == "none":
-        param = FilteredVertices(x0, IdentityFilter())
-        return param, torch.optim.Adam(param.parameters(), lr=settings.lr, betas=settings.betas)
-    param = FilteredVertices(x0, make_filter(settings, space, x0))
-    return param, UniformAdam(param.parameters(), lr=settings.lr, betas=settings.betas)
+    load_plugins()
+    if settings.method not in METHODS:
+        raise StatfitError(f"unknown method {settings.method!r}; choose one of {', '.join(METHODS)}")
+    return METHODS[settings.method].build(settings, space, x0)
 
-
-def make_filter(settings: Settings, space: FitSpace, x0: torch.Tensor):
-    """The gradient filter of a filtered method."""
-    gain = (space.std / space.std[0]) ** settings.mode_gain if settings.mode_gain else None
-    if settings.method == "statistical":
-        return StatisticalFilter(space.basis_t, settings.beta, settings.power, gain)
-    if space.laplacian is not None:
-        smooth = LaplacianFilter.from_laplacian(space.laplacian, settings.lam, settings.solver, x0.dtype, x0.device)
-    else:
-        smooth = LaplacianFilter(x0.detach().cpu().double().numpy(), space.faces, settings.lam, settings.laplacian,
-                                 settings.solver, x0.dtype, x0.device)
-    if settings.method == "laplacian":
-        return smooth
-    if settings.method == "hybrid":
-        return HybridFilter(space.basis_t, settings.beta, smooth, settings.power, gain)
-    raise StatfitError(f"method {settings.method!r} has no filter")

@@ -1,12 +1,15 @@
-"""Parametrisations of the vertices x (N, 3): each maps its parameters to x and pulls ∂loss/∂x
-back onto them. All maps are linear, so the pull-back is one explicit product, no autograd graph.
+"""Parametrisations of the vertices x (N, 3): differentiable maps from their parameters to x, so any
+torch loss on x drives them through ``loss.backward()``.
 
 - FilteredVertices:    x = x0 + F u          (F: identity, Laplacian, statistical, hybrid; u₀ = 0)
 - PCACoefficients:     x = x̄ + B c,  B = U diag(std)
-- RegularizedVertices: x free, prior β/N ‖(I − UUᵀ)(x − x̄)‖²
+- RegularizedVertices: x free, prior β/N ‖(I − UUᵀ)(x − x̄)‖² (gradient in the vertices' backward)
 
-``x = x0 + F u`` with u₀ = 0 follows the same trajectory as Nicolet et al.'s ``x = F u`` with
-u₀ = F⁻¹x0 (the map is linear and the optimiser sees only gradients), without ever needing F⁻¹.
+Every map is linear, so each is one autograd function whose backward is one explicit product
+(the filter again, F being symmetric; Bᵀ for the coefficients): no graph of the filter's inner
+operations is kept. ``x = x0 + F u`` with u₀ = 0 follows the same trajectory as Nicolet et al.'s
+``x = F u`` with u₀ = F⁻¹x0 (the map is linear and the optimiser sees only gradients), without
+ever needing F⁻¹.
 """
 from __future__ import annotations
 
@@ -17,8 +20,52 @@ import torch
 Filter = Callable[[torch.Tensor], torch.Tensor]
 
 
+class _LinearMap(torch.autograd.Function):
+    """y = A(u) for a linear map given as ``forward`` and its adjoint ``adjoint`` (Aᵀ)."""
+
+    @staticmethod
+    def forward(ctx, u: torch.Tensor, forward: Filter, adjoint: Filter) -> torch.Tensor:
+        ctx.adjoint = adjoint
+        return forward(u)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        return ctx.adjoint(grad), None, None
+
+
+def linear_map(u: torch.Tensor, forward: Filter, adjoint: Filter) -> torch.Tensor:
+    """``forward(u)``, differentiable: the gradient w.r.t. ``u`` is ``adjoint(grad)``."""
+    return _LinearMap.apply(u, forward, adjoint)
+
+
+def filtered(u: torch.Tensor, filter: Filter) -> torch.Tensor:
+    """F u for a symmetric filter F (any of :mod:`statfit.filters`), differentiable: ∂/∂u = F ∂/∂(Fu)."""
+    return linear_map(u, filter, filter)
+
+
+class _SubspacePrior(torch.autograd.Function):
+    """Passes x through and reports w ‖(I − UUᵀ)(x − x̄)‖² (``basis_t`` = Uᵀ); the backward adds the
+    prior's gradient 2w (I − UUᵀ)(x − x̄) to the loss's gradient once every use of x in the loss is
+    summed (the explicit form, so the sum is the same whatever the loss's graph)."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, mean: torch.Tensor, basis_t: torch.Tensor, weight: float):
+        offset = (x - mean).reshape(-1)
+        outside = offset - torch.mv(basis_t.t(), torch.mv(basis_t, offset))
+        ctx.save_for_backward(outside)
+        ctx.weight = weight
+        value = weight * outside.square().sum()
+        ctx.mark_non_differentiable(value)
+        return x.clone(), value
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor, _):
+        (outside,) = ctx.saved_tensors
+        return grad + (2 * ctx.weight * outside).view_as(grad), None, None, None
+
+
 class FilteredVertices:
-    """x = x0 + F u; ∂/∂u = F ∂/∂x (F symmetric)."""
+    """x = x0 + F u."""
 
     def __init__(self, x0: torch.Tensor, filter: Filter):
         self.x0 = x0
@@ -29,11 +76,9 @@ class FilteredVertices:
         return [self.u]
 
     def vertices(self) -> torch.Tensor:
-        with torch.no_grad():
-            return self.x0 + self.filter(self.u)
+        return self.x0 + filtered(self.u, self.filter)
 
-    def pull_gradient(self, grad_x: torch.Tensor, x: torch.Tensor) -> dict[str, float]:
-        self.u.grad = self.filter(grad_x)
+    def prior(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
         return {}
 
 
@@ -50,31 +95,36 @@ class PCACoefficients:
         return [self.coeffs]
 
     def vertices(self) -> torch.Tensor:
-        with torch.no_grad():
-            return self.mean + torch.mv(self.basis_t.t(), self.coeffs).view_as(self.mean)
+        return self.mean + linear_map(self.coeffs, self._shape, self._coefficients)
 
-    def pull_gradient(self, grad_x: torch.Tensor, x: torch.Tensor) -> dict[str, float]:
-        self.coeffs.grad = torch.mv(self.basis_t, grad_x.reshape(-1))
+    def prior(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
         return {}
+
+    def _shape(self, coeffs: torch.Tensor) -> torch.Tensor:
+        return torch.mv(self.basis_t.t(), coeffs).view_as(self.mean)
+
+    def _coefficients(self, grad_x: torch.Tensor) -> torch.Tensor:
+        return torch.mv(self.basis_t, grad_x.reshape(-1))
 
 
 class RegularizedVertices:
-    """Free vertices with the prior β/N ‖(I − UUᵀ)(x − x̄)‖² (``basis_t`` = Uᵀ, (K, 3N))."""
+    """Free vertices with the prior β/N ‖(I − UUᵀ)(x − x̄)‖² (``basis_t`` = Uᵀ, (K, 3N)): the
+    prior's gradient comes with the vertices' backward; ``prior`` reports its value."""
 
     def __init__(self, x0: torch.Tensor, mean: torch.Tensor, basis_t: torch.Tensor, beta: float):
         self.x = x0.detach().clone().requires_grad_(True)
         self.mean = mean
         self.basis_t = basis_t.contiguous()
         self.weight = beta / x0.shape[0]
+        self._prior = torch.zeros(())
 
     def parameters(self) -> list[torch.Tensor]:
         return [self.x]
 
     def vertices(self) -> torch.Tensor:
-        return self.x.detach()
+        x, self._prior = _SubspacePrior.apply(self.x, self.mean, self.basis_t, self.weight)
+        return x
 
-    def pull_gradient(self, grad_x: torch.Tensor, x: torch.Tensor) -> dict[str, float]:
-        offset = (x.detach() - self.mean).reshape(-1)
-        outside = offset - torch.mv(self.basis_t.t(), torch.mv(self.basis_t, offset))
-        self.x.grad = grad_x + (2 * self.weight * outside).view_as(grad_x)
-        return {"prior": float(self.weight * outside.square().sum())}
+    def prior(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The prior's value at the last ``vertices()`` (no gradient: that is in the vertices')."""
+        return {"prior": self._prior}

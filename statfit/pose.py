@@ -21,6 +21,10 @@ class PoseFit:
     loss: float
 
 
+# Weight of the Gaussian prior on the shape coefficients fitted with the pose: weak, so the pose
+# does not absorb differences of shape (docs/method.md, the inverse-rendering alignment).
+SHAPE_PRIOR = 1e-3
+
 def _skew(omega: torch.Tensor) -> torch.Tensor:
     zero = omega.new_zeros(())
     x, y, z = omega.unbind()
@@ -29,7 +33,7 @@ def _skew(omega: torch.Tensor) -> torch.Tensor:
 
 def fit_pose(vertices: torch.Tensor, loss: Loss, *, with_scale: bool = False, iterations: int = 200,
              lr: float = 0.01, start: Similarity | None = None, fixed_axis: torch.Tensor | None = None,
-             shape_basis: torch.Tensor | None = None, shape_prior: float = 1e-3, move: bool = True) -> PoseFit:
+             shape_basis: torch.Tensor | None = None, shape_prior: float = SHAPE_PRIOR, move: bool = True) -> PoseFit:
     """The pose y = s·R·x + t of ``vertices`` (N, 3) that minimises ``sum(loss(y).values())``.
 
     Adam on a rotation vector (exponential map), a translation and, ``with_scale``, log s; the

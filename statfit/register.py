@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import numpy as np
@@ -11,13 +10,14 @@ import torch
 
 from statfit.align import Similarity, icp, initial_guess, umeyama
 from statfit.closest import ClosestPointQuery
-from statfit.errors import StatfitError
+from statfit.errors import StatfitError, StatfitWarning
 from statfit.fit import StageTimer
 from statfit.frame import Frame
-from statfit.methods import FitSpace, Settings, resolve
+from statfit.methods import resolve
+from statfit.settings import FitSpace, Settings
 from statfit.model import StatModel, region_triangles
 from statfit.objectives.scan import ScanObjective
-from statfit.stages import run_stages
+from statfit.stages import Fit, run_stages
 from statfit.threads import choose_threads, intra_op_threads
 
 ALIGNMENTS = ("none", "rigid", "similarity")
@@ -25,23 +25,6 @@ ALIGNMENTS = ("none", "rigid", "similarity")
 UNIT_MISMATCH_FACTOR = 8.0
 # Median scan-to-template distance (in model RMS radii) above which the scan is "far" from the model.
 FAR_DISTANCE = 0.25
-
-
-class StatfitWarning(UserWarning):
-    """Something the user should know that does not stop the fit."""
-
-
-@dataclass
-class Registration:
-    """Fitted vertices (N, 3) in the scan's frame and units, and how they were obtained."""
-
-    vertices: np.ndarray
-    transform: Similarity
-    stages: tuple[Settings, ...]
-    loss: dict[str, float]
-    seconds: float
-    stage_seconds: dict[str, float] = field(default_factory=dict)
-    iterations: int = 0
 
 
 def check_scan(points: np.ndarray, source: str = "scan") -> np.ndarray:
@@ -67,15 +50,6 @@ def resolve_device(device: str) -> torch.device:
     if device == "cuda" and not torch.cuda.is_available():
         raise StatfitError("--device cuda was asked for but no CUDA device is available")
     return torch.device(device)
-
-
-def fit_space(model: StatModel, frame: Frame, device: torch.device, dtype: torch.dtype) -> FitSpace:
-    """The model's mean, basis and std-devs in the fit frame, as tensors on ``device``."""
-    def as_tensor(array: np.ndarray) -> torch.Tensor:
-        return torch.as_tensor(np.ascontiguousarray(array), dtype=dtype, device=device)
-
-    return FitSpace(as_tensor(frame.to_unit(model.template)), as_tensor(model.basis.T),
-                    as_tensor(model.std / frame.scale), model.faces)
 
 
 def landmark_alignment(model: StatModel, landmarks: np.ndarray) -> Similarity:
@@ -123,7 +97,7 @@ def register(model: StatModel, points: np.ndarray, method: str = "default", *, p
              timer: StageTimer | None = None, stages: tuple[Settings, ...] | None = None,
              region: str | None = None, landmarks: np.ndarray | None = None,
              on_snapshot: Callable[[int, np.ndarray], None] | None = None, threads: int | None = None,
-             **overrides: Any) -> Registration:
+             **overrides: Any) -> Fit:
     """Fit ``model`` to the scan ``points`` (M, 3) with ``method``.
 
     ``region`` names a stored vertex subset: only scan points whose closest surface point lies on
@@ -138,6 +112,10 @@ def register(model: StatModel, points: np.ndarray, method: str = "default", *, p
     method's settings; ``stages`` replaces the method altogether by an explicit pipeline. Warns (StatfitWarning) when the scan is far from the model with align='none'.
     """
     points = check_scan(points)
+    if not 0 <= trim < 1:
+        raise StatfitError(f"trim must lie in [0, 1), got {trim}")
+    if refresh_every < 1:
+        raise StatfitError(f"refresh_every must be at least 1, got {refresh_every}")
     stages = stages or resolve(method, preset, **overrides)
     torch_device = resolve_device(device)
     with intra_op_threads(choose_threads(model.basis.size, threads)):
@@ -147,7 +125,7 @@ def register(model: StatModel, points: np.ndarray, method: str = "default", *, p
                                                                    device=torch_device)
         transform = prealign(model, points, align, landmarks)
         frame = Frame.of(model.template)
-        space = fit_space(model, frame, torch_device, dtype)
+        space = FitSpace.of(model, frame, torch_device, dtype)
         scan = torch.as_tensor(frame.to_unit(transform.inverse_apply(points)), dtype=dtype, device=torch_device)
         query = ClosestPointQuery(model.faces, model.num_vertices, k=2, device=torch_device)
         objective = ScanObjective(scan, query, refresh_every=refresh_every, trim=trim, region_faces=region_faces)
@@ -164,5 +142,5 @@ def register(model: StatModel, points: np.ndarray, method: str = "default", *, p
         snapshot = None if on_snapshot is None else lambda it, x: on_snapshot(it, to_scan_frame(x))
         result = run_stages(stages, space, objective, space.mean.clone(), on_record=on_record,
                             on_snapshot=snapshot, timer=timer)
-        return Registration(to_scan_frame(result.vertices), transform, stages, result.loss,
+        return Fit(to_scan_frame(result.vertices), transform, stages, result.loss,
                             time.perf_counter() - started, dict(timer.seconds), result.iterations)

@@ -6,14 +6,33 @@ solve of :mod:`statfit.gauss_newton` (objectives with affine residuals only: sca
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 
+from statfit.align import Similarity
 from statfit.errors import StatfitError
 from statfit.fit import Objective, Progress, Snapshot, StageTimer, run_fit
 from statfit.gauss_newton import fit_coefficients
-from statfit.methods import FitSpace, Settings, build
+from statfit.methods import build
+from statfit.settings import FitSpace, Settings
+
+
+@dataclass
+class Fit:
+    """A job's result: fitted vertices (N, 3) in the input's frame and units; ``transform`` maps the
+    model's frame onto it (the pre-alignment: scan for register, camera world for render); the
+    stages run, the last stage's loss terms, wall seconds (``stage_seconds`` per part of the loop)
+    and the iterations run in all."""
+
+    vertices: np.ndarray
+    transform: Similarity
+    stages: tuple[Settings, ...]
+    loss: dict[str, float]
+    seconds: float
+    stage_seconds: dict[str, float] = field(default_factory=dict)
+    iterations: int = 0
 
 
 @dataclass

@@ -24,7 +24,8 @@ RESULTS = ROOT / "studies" / "results" / "register_gauss_newton.json"
 
 
 def pipelines() -> dict:
-    from statfit.methods import PIPELINES, Settings
+    from statfit.methods import PIPELINES
+    from statfit.settings import Settings
 
     def gn(noise: float, levels: int = 5) -> Settings:
         return Settings("pca", 200, 0.0, optimizer="gauss-newton", noise=noise, levels=levels)
@@ -33,7 +34,7 @@ def pipelines() -> dict:
         return Settings("statistical", iterations, lr, beta=beta, mode_gain=gain)
 
     return {
-        "default (shipped)": PIPELINES["default"],
+        "default (shipped)": PIPELINES["register"]["default"].stages,
         "GN σ 0, no continuation": (gn(0.0, 1),),
         "GN σ 0.01, no continuation": (gn(0.01, 1),),
         "GN σ 0.03, no continuation": (gn(0.03, 1),),

@@ -47,16 +47,15 @@ def schedules() -> dict:
 
     return {
         "default (shipped)": ((512, RENDER_PIPELINES["default"]),),
-        "512: hyb 800": ((512, (hyb(800),)),),
-        "256: hyb 2000 → 512: hyb 300": ((256, (hyb(2000),)), (512, (hyb(300),))),
-        "256: hyb 1500 → 512: hyb 400": ((256, (hyb(1500),)), (512, (hyb(400),))),
-        "128: hyb 2000 → 512: hyb 400": ((128, (hyb(2000),)), (512, (hyb(400),))),
-        "128: hyb 1500 → 256: hyb 1000 → 512: hyb 300": ((128, (hyb(1500),)), (256, (hyb(1000),)),
-                                                         (512, (hyb(300),))),
-        "256: hyb 1000 lr .03 → 512: hyb 400": ((256, (hyb(1000, 0.03),)), (512, (hyb(400),))),
-        "256: pca 500 → hyb 1200 → 512: hyb 300": ((256, (pca(500), hyb(1200))), (512, (hyb(300),))),
-        "128: hyb 1000 lr .03 → 256: hyb 800 → 512: hyb 300": ((128, (hyb(1000, 0.03),)), (256, (hyb(800),)),
-                                                               (512, (hyb(300),))),
+        # screening (jaw-open, smile)
+        "512: hyb 500 lr .03": ((512, (hyb(500, 0.03),)),),
+        "256: hyb 800 lr .03 → 512: hyb 100": ((256, (hyb(800, 0.03),)), (512, (hyb(100),))),
+        "256: hyb 800 lr .05 → 512: hyb 100": ((256, (hyb(800, 0.05),)), (512, (hyb(100),))),
+        "256: hyb 500 lr .05 → hyb 300 lr .02 → 512: hyb 100": ((256, (hyb(500, 0.05), hyb(300, 0.02))),
+                                                               (512, (hyb(100),))),
+        "128: hyb 800 lr .03 → 512: hyb 100": ((128, (hyb(800, 0.03),)), (512, (hyb(100),))),
+        "256: pca 300 lr .1 → hyb 500 lr .03 → 512: hyb 100": ((256, (pca(300, 0.1), hyb(500, 0.03))),
+                                                              (512, (hyb(100),))),
     }
 
 
@@ -77,7 +76,7 @@ def reduced(normal_map, camera, size: int):
     import torch
 
     from statfit.inverse_render import downsampled
-    from statfit.io.normalmap import NormalMap
+    from statfit.normal_map import NormalMap
 
     if size >= min(normal_map.mask.shape):
         return normal_map, camera

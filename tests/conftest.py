@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import multiprocessing
+import sys
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any, Callable
@@ -12,7 +13,9 @@ import torch
 
 from statfit.model import default_model_path, load_model
 
-ICT_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ict-face"
+# The one definition of where the shared data lie, and of the ICT cases, is benchmarks/ (common.py, cases.py).
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from common import ICT as ICT_DIR  # noqa: E402
 
 
 @pytest.fixture(scope="session")

@@ -11,7 +11,7 @@ import torch
 from PIL import Image
 
 from statfit.io.image import read_image, write_image
-from statfit.texture.synthetic import brow_hole, face_textures
+from texture_fixtures import brow_hole, face_textures
 from test_cli import corrupt, run
 
 SIZE = 32

@@ -11,7 +11,8 @@ from statfit.frame import Frame
 from statfit.gauss_newton import fit_coefficients
 from statfit.methods import resolve
 from statfit.objectives.scan import ScanObjective
-from statfit.register import fit_space, register
+from statfit.register import register
+from statfit.settings import FitSpace
 from statfit.synth import scan_from_view
 
 
@@ -23,7 +24,7 @@ def _scan_objective(model, points: np.ndarray, frame: Frame) -> ScanObjective:
 def test_jacobian_matches_finite_differences_of_the_residuals(embedded_model, rng):
     """∂r/∂c from ``jacobian`` equals central differences of ``residuals`` along each direction."""
     frame = Frame.of(embedded_model.template)
-    space = fit_space(embedded_model, frame, torch.device("cpu"), torch.float64)
+    space = FitSpace.of(embedded_model, frame, torch.device("cpu"), torch.float64)
     mesh = trimesh.Trimesh(embedded_model.shape(rng.standard_normal(embedded_model.num_modes)), embedded_model.faces,
                            process=False)
     objective = _scan_objective(embedded_model, mesh.sample(400, seed=3), frame)
@@ -43,7 +44,7 @@ def test_recovers_an_in_span_shape_from_a_partial_scan(embedded_model, rng):
     target = embedded_model.shape(coeffs)
     points = scan_from_view(target, embedded_model.faces, rng, 3000, 30.0)
     frame = Frame.of(embedded_model.template)
-    space = fit_space(embedded_model, frame, torch.device("cpu"), torch.float64)
+    space = FitSpace.of(embedded_model, frame, torch.device("cpu"), torch.float64)
     objective = _scan_objective(embedded_model, points, frame)
     fit = fit_coefficients(space.mean, space.basis_t, space.std, objective, space.mean, 100, noise=0.0, levels=1,
                            tolerance=1e-9)
@@ -58,7 +59,7 @@ def test_prior_shrinks_towards_the_mean(embedded_model, rng):
     target = embedded_model.shape(2 * rng.standard_normal(embedded_model.num_modes))
     points = scan_from_view(target, embedded_model.faces, rng, 2000, -20.0)
     frame = Frame.of(embedded_model.template)
-    space = fit_space(embedded_model, frame, torch.device("cpu"), torch.float64)
+    space = FitSpace.of(embedded_model, frame, torch.device("cpu"), torch.float64)
     norms = []
     for noise in (0.0, 0.05, 0.5):
         fit = fit_coefficients(space.mean, space.basis_t, space.std, _scan_objective(embedded_model, points, frame),
@@ -72,7 +73,7 @@ def test_continuation_relaxes_the_prior_to_the_final_noise(embedded_model, rng):
     target = embedded_model.shape(1.5 * rng.standard_normal(embedded_model.num_modes))
     points = scan_from_view(target, embedded_model.faces, rng, 2000, 10.0)
     frame = Frame.of(embedded_model.template)
-    space = fit_space(embedded_model, frame, torch.device("cpu"), torch.float64)
+    space = FitSpace.of(embedded_model, frame, torch.device("cpu"), torch.float64)
     path = fit_coefficients(space.mean, space.basis_t, space.std, _scan_objective(embedded_model, points, frame),
                             space.mean, 200, 0.01, levels=5, tolerance=1e-8)
     again = fit_coefficients(space.mean, space.basis_t, space.std, _scan_objective(embedded_model, points, frame),
@@ -101,6 +102,6 @@ def test_gauss_newton_needs_a_least_squares_objective(embedded_model):
         def reset(self):
             pass
 
-    space = fit_space(embedded_model, Frame.of(embedded_model.template), torch.device("cpu"), torch.float32)
+    space = FitSpace.of(embedded_model, Frame.of(embedded_model.template), torch.device("cpu"), torch.float32)
     with pytest.raises(StatfitError, match="least-squares"):
         run_stages(resolve("pca"), space, Plain(), space.mean)

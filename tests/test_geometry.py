@@ -10,7 +10,8 @@ from scipy.spatial.transform import Rotation
 from statfit.align import Similarity, icp, umeyama
 from statfit.closest import ClosestPointQuery, closest_on_triangles
 from statfit.objectives.scan import ScanObjective
-from statfit.parametrize import PCACoefficients, RegularizedVertices
+from statfit.filters import StatisticalFilter
+from statfit.parametrize import FilteredVertices, PCACoefficients, RegularizedVertices
 
 
 def test_closest_points_match_brute_force(embedded_model, rng):
@@ -78,31 +79,37 @@ def test_exact_point_to_surface_gradient_at_refresh(embedded_model, rng):
 
 
 def test_pull_backs_match_autograd(embedded_model, rng):
+    """Each parametrisation's explicit backward equals autograd through its formula."""
     mean = torch.as_tensor(embedded_model.template)
     basis_t = torch.as_tensor(embedded_model.basis.T)
     weights = torch.as_tensor(rng.standard_normal(mean.shape))
     loss = lambda x: (weights * x).sum() + x.square().sum()
 
     pca = PCACoefficients(mean, basis_t * 0.01, torch.as_tensor(rng.standard_normal(basis_t.shape[0])))
-    x = pca.vertices().requires_grad_(True)
-    loss(x).backward()
-    pca.pull_gradient(x.grad, x)
+    loss(pca.vertices()).backward()
     c = pca.coeffs.detach().clone().requires_grad_(True)
     loss(mean + (basis_t.t() * 0.01 @ c).view_as(mean)).backward()
     torch.testing.assert_close(pca.coeffs.grad, c.grad)
 
     start = mean + 0.01 * torch.as_tensor(rng.standard_normal(mean.shape))
     reg = RegularizedVertices(start, mean, basis_t, beta=10.0)
-    x = reg.vertices().clone().requires_grad_(True)
-    loss(x).backward()
-    prior = reg.pull_gradient(x.grad, x)["prior"]
+    x = reg.vertices()
+    prior = reg.prior(x)["prior"]
+    loss(x).backward()  # the prior's gradient comes with the vertices
     y = start.clone().requires_grad_(True)
     off = (y - mean).reshape(-1)
     outside = off - basis_t.t() @ (basis_t @ off)
     total = loss(y) + 10.0 / len(mean) * outside.square().sum()
     total.backward()
     torch.testing.assert_close(reg.x.grad, y.grad)
-    assert prior == pytest.approx(float(10.0 / len(mean) * outside.detach().square().sum()))
+    assert float(prior) == pytest.approx(float(10.0 / len(mean) * outside.detach().square().sum()))
+
+    filtered_x = FilteredVertices(mean, StatisticalFilter(basis_t, 30.0))
+    x = filtered_x.vertices()
+    loss(x).backward()
+    g = (weights + 2 * x.detach()).reshape(-1)  # ∂loss/∂x in closed form; ∂/∂u = α UUᵀ g + (1 − α) g
+    expected = 30.0 / 31.0 * basis_t.t() @ (basis_t @ g) + g / 31.0
+    torch.testing.assert_close(filtered_x.u.grad.reshape(-1), expected)
 
 
 @pytest.mark.parametrize("with_scale", [False, True])

@@ -13,11 +13,10 @@ from statfit.filters import HybridFilter, LaplacianFilter
 from statfit.io.image import read_charts, read_image, read_mask, write_image
 from statfit.texture.grid import grid_laplacian
 from statfit.texture.inpaint import inpaint, inpaint_settings, model_reconstruction
-from statfit.texture.metrics import hole_errors
 from statfit.texture.model import (as_channels, build_texture_model, jitter_colours, load_texture_model,
                                    texture_model_from_arrays)
 from statfit.texture.resample import resize_image
-from statfit.texture.synthetic import brow_hole, face_textures
+from texture_fixtures import brow_hole, face_textures, hole_errors
 
 
 @pytest.fixture(autouse=True)

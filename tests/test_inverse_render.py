@@ -10,7 +10,7 @@ from statfit.align import Similarity
 from statfit.errors import StatfitError
 from statfit.frame import Frame
 from statfit.inverse_render import camera_in_frame, camera_space_normals, downsampled, reconstruct
-from statfit.io.normalmap import NormalMap
+from statfit.normal_map import NormalMap
 from statfit.objectives.normals import NormalMapObjective
 from statfit.pose import fit_pose
 from statfit.synth import camera_for_view, render_target
@@ -117,15 +117,15 @@ def test_rigid_alignment_recovers_a_moved_target(embedded_model, scene):
                           iterations=150)
         errors[align] = float(np.linalg.norm(fit.vertices - moved, axis=1).mean())
     assert errors["rigid"] < 0.5 * errors["none"], errors
-    assert np.degrees(Rotation.from_matrix(fit.pose.rotation @ turn.T).magnitude()) < 2.0
+    assert np.degrees(Rotation.from_matrix(fit.transform.rotation @ turn.T).magnitude()) < 2.0
 
 
 def test_rigid_alignment_leaves_a_target_in_place_in_place(embedded_model, scene):
     shape, camera = scene
     normals, mask = render_target(shape, embedded_model.faces, camera)
     fit = reconstruct(embedded_model, NormalMap(normals, mask), camera, "statistical", iterations=1)
-    np.testing.assert_array_equal(fit.pose.rotation, np.eye(3))
-    np.testing.assert_array_equal(fit.pose.translation, np.zeros(3))
+    np.testing.assert_array_equal(fit.transform.rotation, np.eye(3))
+    np.testing.assert_array_equal(fit.transform.translation, np.zeros(3))
 
 
 def test_downsampled_map_matches_a_render_at_the_reduced_camera(embedded_model, scene):
@@ -152,6 +152,6 @@ def test_similarity_alignment_takes_a_map_in_other_units(embedded_model):
     with pytest.raises(StatfitError, match="different units"):
         reconstruct(embedded_model, normal_map, camera, "statistical", iterations=1)
     fit = reconstruct(embedded_model, normal_map, camera, "statistical", align="similarity", iterations=100)
-    assert 800 < fit.pose.scale < 1250
+    assert 800 < fit.transform.scale < 1250
     _, covered = render_target(fit.vertices, embedded_model.faces, camera)
     assert (covered & normal_map.mask).sum() > 0.9 * (covered | normal_map.mask).sum()

@@ -10,7 +10,7 @@ import torch
 import trimesh
 
 from statfit.inverse_render import camera_space_normals
-from statfit.io.normalmap import NormalMap
+from statfit.normal_map import NormalMap
 from statfit.model import region_triangles
 from statfit.objectives.normals import NormalMapObjective
 from statfit.synth import camera_for_view, render_target

@@ -11,16 +11,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from cases import STUDY_SCAN_CASES as CASES
 from conftest import ICT_DIR, run_two_at_a_time
 
 pytestmark = pytest.mark.slow
 
-# name: (seed, expression, weight, yaw, pitch) — cases of the study.
-CASES = {
-    "smile": (11, "mouthSmile_R", 1.0, 0.0, 0.0),
-    "brow-up": (23, "browInnerUp_L", 0.9, -40.0, 0.0),
-    "jaw-open": (3, "jawOpen", 1.0, 30.0, 0.0),
-}
 TUNED = ("default", "statistical", "hybrid", "laplacian", "pca", "regularized", "none")
 # (case, method, preset) of every fit the tests below compare.
 FITS = ([(case, method, "paper") for case in ("smile", "brow-up") for method in ("statistical", "laplacian", "regularized")]

@@ -10,11 +10,12 @@ import pytest
 import torch
 import trimesh
 
+from conftest import ICT_DIR
 from statfit.errors import StatfitError
 from statfit.render import (Camera, EdgeCrossings, MeshAdjacency, interpolate, normal_image, rasterize, render_normals,
                             vertex_normals)
 
-ICT_PATH = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ict-face" / "ict_face_identity.npz"
+ICT_PATH = ICT_DIR / "ict_face_identity.npz"
 
 
 @pytest.fixture(autouse=True)

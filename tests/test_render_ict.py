@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from cases import NORMAL_CASES
 from conftest import ICT_DIR, run_two_at_a_time
 
 pytestmark = pytest.mark.slow
@@ -23,18 +24,19 @@ def fit_error(method: str, preset: str) -> float:
     """Relative mean vertex error of one fit of the jaw-open case (runs in a worker process)."""
     import torch
 
-    from statfit.io.normalmap import NormalMap
+    from statfit.normal_map import NormalMap
     from statfit.inverse_render import reconstruct
     from statfit.model import load_model
     from statfit.synth import camera_for_view, load_delta, render_target, sample_target
 
     torch.set_num_threads(1)
     model = load_model(ICT_DIR / "ict_face_identity.npz")
-    truth = sample_target(model, np.random.default_rng(3), 1.0,
-                          load_delta(str(ICT_DIR / "ict_face_expressions.npz"), "jawOpen"), 0.8)
+    seed, expression, weight, yaw, pitch = NORMAL_CASES["jaw-open"]
+    truth = sample_target(model, np.random.default_rng(seed), 1.0,
+                          load_delta(str(ICT_DIR / "ict_face_expressions.npz"), expression), weight)
     if method == "template":
         return _relative_error(model.template, truth)
-    camera = camera_for_view(truth, 20.0, 0.0, SIZE)
+    camera = camera_for_view(truth, yaw, pitch, SIZE)
     normal_map = NormalMap(*render_target(truth, model.faces, camera))
     return _relative_error(reconstruct(model, normal_map, camera, method, preset=preset).vertices, truth)
 

@@ -53,14 +53,18 @@ def read_exr(path: str | Path, what: str = "file") -> tuple[dict, dict[str, np.n
     return header, channels
 
 
-def write_exr(path: str | Path, channels: dict[str, np.ndarray], header: dict | None = None) -> None:
-    """Write float channels (name → (H, W)) as a ZIP-compressed scanline EXR, atomically; ``header``
-    adds attributes."""
+def exr_bytes(channels: dict[str, np.ndarray], header: dict | None = None) -> bytes:
+    """Float channels (name → (H, W)) encoded as a ZIP-compressed scanline EXR; ``header`` adds
+    attributes."""
     full = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage} | (header or {})
     channels = {name: np.ascontiguousarray(data, dtype=np.float32) for name, data in channels.items()}
-    folder = Path(path).parent
-    with tempfile.TemporaryDirectory(dir=folder if folder.is_dir() else None) as scratch:
+    with tempfile.TemporaryDirectory() as scratch:
         staging = Path(scratch) / "image.exr"
         with OpenEXR.File(full, channels) as exr:
             exr.write(str(staging))
-        write_atomic(path, staging.read_bytes())
+        return staging.read_bytes()
+
+
+def write_exr(path: str | Path, channels: dict[str, np.ndarray], header: dict | None = None) -> None:
+    """Write float channels (name → (H, W)) as a ZIP-compressed scanline EXR, atomically."""
+    write_atomic(path, exr_bytes(channels, header))

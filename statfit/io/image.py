@@ -13,12 +13,15 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from statfit.errors import StatfitError
-from statfit.io.exr import is_exr, read_exr, write_exr
+from statfit.io.exr import exr_bytes, is_exr, read_exr
 from statfit.io.mesh import write_atomic
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")
 EXR_CHANNELS = {1: "Y", 3: "RGB", 4: "RGBA"}
 
+
+# A mask pixel is on above half grey (8-bit).
+MASK_THRESHOLD = 127
 
 def read_image(path: str | Path) -> np.ndarray:
     """An image as float32 (H, W, C) with C = 1 (grey), 3 (RGB) or 4 (RGBA); values in [0, 1]
@@ -73,15 +76,19 @@ def image_bytes(image: np.ndarray, suffix: str) -> bytes:
     return buffer.getvalue()
 
 
-def write_image(path: str | Path, image: np.ndarray) -> None:
-    """Write ``image`` (H, W, C), C in 1/3/4, atomically: float EXR for ``.exr``, else 8-bit PNG/JPEG."""
-    suffix = image_suffix(path)
+def encoded_image(image: np.ndarray, suffix: str) -> bytes:
+    """``image`` (H, W, C), C in 1/3/4, as the bytes of a file: float EXR for ``.exr``, else 8-bit
+    PNG/JPEG (:func:`image_bytes`)."""
     if image.ndim != 3 or image.shape[-1] not in EXR_CHANNELS:
         raise StatfitError(f"cannot write an image of shape {image.shape}: need (H, W, 1, 3 or 4)")
     if suffix == ".exr":
-        write_exr(path, {c: image[..., i] for i, c in enumerate(EXR_CHANNELS[image.shape[-1]])})
-    else:
-        write_atomic(path, image_bytes(image, suffix))
+        return exr_bytes({c: image[..., i] for i, c in enumerate(EXR_CHANNELS[image.shape[-1]])})
+    return image_bytes(image, suffix)
+
+
+def write_image(path: str | Path, image: np.ndarray) -> None:
+    """Write ``image`` (H, W, C) atomically, encoded by the file's suffix (:func:`encoded_image`)."""
+    write_atomic(path, encoded_image(image, image_suffix(path)))
 
 
 def image_suffix(path: str | Path) -> str:
@@ -106,7 +113,7 @@ def _read_grey_or_rgb(path: str | Path, what: str, mode: str) -> np.ndarray:
 def read_mask(path: str | Path) -> np.ndarray:
     """A mask (H, W) bool from an image file (PNG, ...): white (> 50% grey) is True (foreground,
     or visible)."""
-    return _read_grey_or_rgb(path, "mask", "L") > 127
+    return _read_grey_or_rgb(path, "mask", "L") > MASK_THRESHOLD
 
 
 def read_charts(path: str | Path) -> np.ndarray:

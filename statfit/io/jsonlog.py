@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import platform
+from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -17,9 +18,7 @@ def versions() -> dict[str, str]:
     import scipy
     import trimesh
 
-    from statfit import __version__
-
-    return {"statfit": __version__, "python": platform.python_version(), "torch": torch.__version__,
+    return {"statfit": metadata.version("statfit"), "python": platform.python_version(), "torch": torch.__version__,
             "numpy": np.__version__, "scipy": scipy.__version__, "trimesh": trimesh.__version__}
 
 

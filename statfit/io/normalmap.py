@@ -7,7 +7,6 @@ may travel in the header as the standard ``worldToCamera`` attribute (4×4) plus
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -15,16 +14,8 @@ import numpy as np
 from statfit.errors import StatfitError
 from statfit.io.exr import read_exr, write_exr
 from statfit.io.mesh import write_atomic
-from statfit.render.camera import Camera
-
-
-@dataclass(frozen=True)
-class NormalMap:
-    """normals (H, W, 3) float32, unit on the mask; mask (H, W) bool; camera from the header, if any."""
-
-    normals: np.ndarray
-    mask: np.ndarray
-    camera: Camera | None = None
+from statfit.camera import Camera
+from statfit.normal_map import NormalMap
 
 
 def read_normal_map(path: str | Path) -> NormalMap:

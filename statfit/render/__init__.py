@@ -5,7 +5,7 @@
 gradients at silhouettes, ``render_normals`` for the whole chain (normal map and mask).
 """
 from statfit.render.silhouette import EdgeCrossings, MeshAdjacency, antialias, silhouette_crossings
-from statfit.render.camera import Camera
+from statfit.camera import Camera
 from statfit.render.raster import Fragments, interpolate, interpolate_fragments, rasterize
 from statfit.render.shading import fragment_normals, normal_image, render_normals, vertex_normals
 

@@ -26,7 +26,7 @@ from functools import cached_property
 import torch
 
 from statfit.errors import StatfitError
-from statfit.render.camera import Camera
+from statfit.camera import Camera
 
 # Z-buffer keys: float32 bits of the (positive) depth in the high word, triangle id in the low word.
 # The empty key's words read as depth +inf and triangle -1.

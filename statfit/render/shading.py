@@ -7,7 +7,7 @@ import torch
 
 from statfit.errors import StatfitError
 from statfit.render.silhouette import MeshAdjacency, silhouette_crossings
-from statfit.render.camera import Camera
+from statfit.camera import Camera
 from statfit.render.raster import Fragments, interpolate_fragments, rasterize
 
 

@@ -8,31 +8,21 @@ UniformAdam and ``run_fit`` are the mesh fit's own. The hybrid filter's Laplacia
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
 
 from statfit.errors import StatfitError
-from statfit.fit import Progress, run_fit
-from statfit.methods import FitSpace, Settings, build
+from statfit.fit import Progress
+from statfit.methods import METHODS, resolve
+from statfit.settings import FitSpace, Settings
+from statfit.stages import run_stages
 from statfit.texture.grid import grid_laplacian
 from statfit.texture.model import TextureModel
 from statfit.texture.resample import resize_image, resize_labels, resize_mask
 
-TEXTURE_METHODS = ("hybrid", "statistical", "laplacian", "pca", "none")
-MODEL_METHODS = ("hybrid", "statistical", "pca")
-
-# Defaults from the sweep of benchmarks/study_inpaint.py (docs/method.md, "Texture inpainting"): the
-# paper's lr, β and λ for the filters (β = 100 was ≤ 1.3% better on faces, equal on digits); λ = 19
-# was the Laplacian's best on both families; 300 iterations (1000 were slightly worse).
-INPAINT_DEFAULTS: dict[str, Settings] = {
-    "hybrid": Settings("hybrid", 300, 0.01, beta=30.0, lam=19.0),
-    "statistical": Settings("statistical", 300, 0.01, beta=30.0),
-    "laplacian": Settings("laplacian", 300, 0.01, lam=19.0),
-    "pca": Settings("pca", 300, 0.01),
-    "none": Settings("none", 300, 0.01),
-}
 STARTS = ("mean", "reconstruction")
 # Pixel noise (standard deviation, in [0, 1] colour units) assumed by the model-only reconstruction.
 PROJECTION_NOISE = 0.02
@@ -71,17 +61,10 @@ class VisibleL1:
 
 def inpaint_settings(method: str, iterations: int | None = None, lr: float | None = None, beta: float | None = None,
                      lam: float | None = None) -> Settings:
-    """The default settings of ``method`` with the given values replaced (validated)."""
-    if method not in TEXTURE_METHODS:
-        raise StatfitError(f"unknown method {method!r}; choose one of {', '.join(TEXTURE_METHODS)}")
-    if iterations is not None and iterations < 1:
-        raise StatfitError("--iterations must be at least 1")
-    if lr is not None and not lr > 0:
-        raise StatfitError("--lr must be positive")
-    if any(v is not None and not v >= 0 for v in (beta, lam)):
-        raise StatfitError("--beta and --lam must be at least 0")
-    changes = {k: v for k, v in dict(iterations=iterations, lr=lr, beta=beta, lam=lam).items() if v is not None}
-    return replace(INPAINT_DEFAULTS[method], **changes)
+    """The tuned settings of ``method`` for inpainting (:data:`statfit.methods.METHODS`) with the given
+    values replaced (validated)."""
+    (settings,) = resolve(method, job="inpaint", iterations=iterations, lr=lr, beta=beta, lam=lam)
+    return settings
 
 
 def check_inputs(image: np.ndarray, visible: np.ndarray, charts: np.ndarray | None = None) -> None:
@@ -101,7 +84,7 @@ def check_inputs(image: np.ndarray, visible: np.ndarray, charts: np.ndarray | No
 def check_model(model: TextureModel | None, image: np.ndarray, method: str) -> None:
     """Refuse a missing model for a model method, or a model of another size or channel count."""
     if model is None:
-        if method in MODEL_METHODS:
+        if METHODS[method].needs_model:
             raise StatfitError(f"method {method!r} needs a texture model (--model)")
         return
     if model.size != image.shape[:2]:
@@ -174,10 +157,10 @@ def inpaint(image: np.ndarray, visible: np.ndarray, method: str | None = None, m
         empty = torch.zeros((0, target.numel()), device=device)
         space = FitSpace(x0, empty, torch.zeros(0, device=device), None)
     if method in ("laplacian", "hybrid"):
-        space = replace(space, laplacian=grid_laplacian(height, width, charts))
-    param, optimizer = build(settings, space, x0)
+        space = replace(space, laplacian_matrix=grid_laplacian(height, width, charts))
     objective = VisibleL1(target, torch.as_tensor(visible.reshape(-1), device=device))
-    fit = run_fit(param, optimizer, objective, settings.iterations, on_record=on_record)
+    started = time.perf_counter()
+    fit = run_stages((settings,), space, objective, x0, on_record=on_record)
     filled = fit.vertices.detach().reshape(image.shape).cpu().numpy()
     result = np.where(visible[..., None], image, filled).astype(np.float32)
-    return Inpainting(result, model_only, settings, fit.loss, fit.seconds)
+    return Inpainting(result, model_only, settings, fit.loss, time.perf_counter() - started)

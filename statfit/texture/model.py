@@ -19,7 +19,7 @@ from statfit.io.mesh import write_atomic
 from statfit.io.npz import npz_bytes, read_npz
 from statfit.model import _float_array
 from statfit.pca import principal_components, with_fixed_signs
-from statfit.register import StatfitWarning
+from statfit.errors import StatfitWarning
 from statfit.texture.resample import resize_image
 
 # Modes whose variance is below this fraction of the first's are dropped on loading (the Gram

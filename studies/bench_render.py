@@ -4,7 +4,7 @@ One step: rasterize → vertex normals + interpolation → antialias (normals an
 → backward to the vertices. Prints the median time per stage and of the whole step, and the
 median of the same step through ``render_normals`` as a cross-check.
 
-    PYTHONPATH=. python benchmarks/bench_render.py [--size 512] [--iters 50] [--threads 1]
+    PYTHONPATH=. python studies/bench_render.py [--size 512] [--iters 50] [--threads 1]
 
 ``--tuned-malloc`` raises glibc's mmap/trim thresholds first (as MALLOC_MMAP_THRESHOLD_ and
 MALLOC_TRIM_THRESHOLD_ would): torch's CPU tensors of a few MB are otherwise mmap'd fresh on every
@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import ctypes
+import sys
 import os
 import time
 from collections.abc import Callable
@@ -24,7 +25,8 @@ import torch
 
 from statfit.render import Camera, MeshAdjacency, normal_image, rasterize, render_normals, silhouette_crossings
 
-ICT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ict-face" / "ict_face_identity.npz"
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from common import ICT_MODEL as ICT  # noqa: E402
 STAGES = ("rasterize", "normal image", "antialias", "loss", "backward")
 
 

@@ -8,11 +8,11 @@ default rigid (pose + shape) alignment unless the configuration says otherwise. 
 per-vertex error over all vertices, visible vertices (those of triangles seen in the target view)
 and the rest, relative to the ground truth's RMS radius.
 
-Results are appended to ``benchmarks/results/study_render.json`` after every fit (the run
+Results are appended to ``studies/results/study_render.json`` after every fit (the run
 resumes); ``--report`` prints the table in Markdown. Run from the repository root with
 ``../shared/data/ict-face`` present:
 
-    PYTHONPATH=. python benchmarks/study_render.py [--size 256] [--configs a,b] [--cases a,b] [--report]
+    PYTHONPATH=. python studies/study_render.py [--size 256] [--configs a,b] [--cases a,b] [--report]
 """
 from __future__ import annotations
 
@@ -25,9 +25,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from statfit.io.normalmap import NormalMap
+from statfit.normal_map import NormalMap
 from statfit.inverse_render import reconstruct
-from statfit.methods import Settings
+from statfit.settings import Settings
 from statfit.metrics import visible_vertices
 from statfit.model import load_model
 from statfit.synth import camera_for_view, load_delta, render_target, sample_target
@@ -36,8 +36,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from study_register import Case  # noqa: E402  (an identity seed + an expression, seen from yaw/pitch)
 
 ROOT = Path(__file__).resolve().parents[1]
-ICT = ROOT.parent / "shared" / "data" / "ict-face"
-RESULTS_DIR = ROOT / "benchmarks" / "results"
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from common import ICT  # noqa: E402
+RESULTS_DIR = ROOT / "studies" / "results"
 RESULTS = RESULTS_DIR / "study_render.json"
 
 

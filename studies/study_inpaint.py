@@ -1,17 +1,18 @@
 """Study behind the ``statfit inpaint`` defaults: a small sweep of step size, β, λ, iterations and
-the starting point on the generated face textures (statfit.texture.synthetic), and the digits check.
+the starting point on the generated face textures (tests/texture_fixtures.py), and the digits check.
 
 Faces: a PCA model (K = 40) of 150 generated 64×64 textures (seed 1); 8 held-out textures (seed 99)
 with the hole of ``brow_hole`` (16% of the pixels, over the left eyebrow and eye). Digits: the 8×8
 scikit-learn digits upscaled to 32×32, model (K = 30) of all but 20 held-out digits, hole = the
-central 16×16 block. Metrics: RMS error and correlation on the hole pixels (statfit.texture.metrics),
-mean over the held-out images. Writes ``benchmarks/results/study_inpaint.json``; prints Markdown.
+central 16×16 block. Metrics: RMS error and correlation on the hole pixels (tests/texture_fixtures.py),
+mean over the held-out images. Writes ``studies/results/study_inpaint.json``; prints Markdown.
 
-    OMP_NUM_THREADS=1 PYTHONPATH=. python benchmarks/study_inpaint.py
+    OMP_NUM_THREADS=1 PYTHONPATH=. python studies/study_inpaint.py
 """
 from __future__ import annotations
 
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -19,9 +20,10 @@ import numpy as np
 import torch
 
 from statfit.texture.inpaint import inpaint, inpaint_settings
-from statfit.texture.metrics import hole_errors
 from statfit.texture.model import build_texture_model
-from statfit.texture.synthetic import brow_hole, face_textures
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from texture_fixtures import brow_hole, face_textures, hole_errors  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "study_inpaint.json"
 

@@ -5,7 +5,7 @@ reported apart from the fit, a 20-iteration warm-up fit absorbs the process's fi
 and the timed fit is broken down per stage of the loop. Prints a
 markdown table; `--json PATH` also saves the numbers.
 
-    python benchmarks/bench_register.py [--iterations 500] [--threads 2] [--json out.json]
+    python studies/bench_register.py [--iterations 500] [--threads 2] [--json out.json]
 """
 from __future__ import annotations
 
@@ -15,7 +15,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from common import ICT, machine
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from common import ICT, machine  # noqa: E402
 
 METHODS = ("statistical", "hybrid", "laplacian", "pca", "regularized", "none", "default")
 STAGES = ("correspondences", "loss", "backward", "filter", "step")

@@ -5,7 +5,7 @@ in a fresh process (peak memory is its own); a 20-iteration warm-up fit absorbs 
 timed fit (rigid alignment included) is broken down per stage of the loop ("loss" is rasterize +
 normals + antialias + the loss). Prints a markdown table; `--json PATH` also saves the numbers.
 
-    python benchmarks/bench_render_fit.py [--methods default,statistical] [--size 512] [--threads 2] [--device cpu]
+    python studies/bench_render_fit.py [--methods default,statistical] [--size 512] [--threads 2] [--device cpu]
 """
 from __future__ import annotations
 
@@ -31,7 +31,7 @@ def measure(method: str, size: int, iterations: int | None, threads: int, device
     import numpy as np
     import torch
 
-    from statfit.io.normalmap import NormalMap
+    from statfit.normal_map import NormalMap
     from statfit.inverse_render import reconstruct
     from statfit.model import load_model
     from statfit.synth import camera_for_view, load_delta, render_target, sample_target

@@ -1,4 +1,5 @@
-"""A generated family of face-like textures with structured features, for tests, docs and benchmarks.
+"""Test fixtures for inpainting: a generated family of face-like textures with structured features
+(also used by benchmarks/ and studies/), a hole over one eyebrow, and the errors on a hole.
 
 Each texture: a skin colour with low-frequency shading, two eyebrow strokes (arched, their height,
 length, thickness, arch and hair colour vary; left and right alike but not identical), two eyes
@@ -71,3 +72,17 @@ def brow_hole(size: int | tuple[int, int] = 64, side: str = "left") -> np.ndarra
     cx = 0.3 if side == "left" else 0.7
     hole = (np.abs(x - cx) < 0.2) & (y > 0.1) & (y < 0.5)
     return ~hole
+
+
+def hole_errors(result: np.ndarray, truth: np.ndarray, visible: np.ndarray) -> dict[str, float]:
+    """RMS error and correlation over the hole pixels (``visible`` False) of images (H, W, C).
+
+    The correlation is Pearson's over all hole entries after removing each channel's mean, so it
+    measures structure (features in the right place), not the overall colour.
+    """
+    hole = ~np.asarray(visible, dtype=bool)
+    a, b = result[hole].astype(np.float64), truth[hole].astype(np.float64)
+    rmse = float(np.sqrt(np.mean((a - b) ** 2)))
+    a, b = a - a.mean(axis=0), b - b.mean(axis=0)
+    norm = np.sqrt((a * a).sum() * (b * b).sum())
+    return {"rmse": rmse, "correlation": float((a * b).sum() / norm) if norm > 0 else 0.0}

@@ -1,0 +1,108 @@
+"""Settings of one optimisation stage, validated when made, and the model as the fit sees it."""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+import torch
+
+from statfit.errors import StatfitError
+from statfit.frame import Frame
+from statfit.model import StatModel
+from statfit.solvers import SOLVERS
+
+OPTIMIZERS = ("adam", "gauss-newton")
+LAPLACIANS = ("uniform", "cotangent")
+MAX_ITERATIONS = 10_000_000
+MAX_LEVELS = 20
+
+
+@dataclass(frozen=True)
+class Settings:
+    """One optimisation stage of ``method`` (a name in :data:`statfit.methods.METHODS`).
+
+    ``beta``: the filter's β (statistical, hybrid) or the regulariser's weight (regularized);
+    ``power`` p turns β into β' = (1+β)^p − 1; ``lam``: λ of the Laplacian (``laplacian``: its kind,
+    ``solver``: how (I + λL) is factorised); ``mode_gain`` γ sets the filter's gain on mode j to
+    (std_j / std_1)^γ (0: the paper's filter, gain 1 on every mode). ``optimizer`` is "adam"
+    (Adam, or UniformAdam for filtered methods; ``lr``, ``adam_betas``) or "gauss-newton" (pca on a scan:
+    the closed-form coefficient solve, ``iterations`` an upper bound, ``noise`` σ the residual noise
+    that weighs the Gaussian prior, in fit-frame units, reached through ``levels`` continuation
+    levels). Out-of-range values raise StatfitError naming the setting.
+    """
+
+    method: str
+    iterations: int
+    lr: float
+    beta: float = 30.0
+    power: float = 1.0
+    lam: float = 19.0
+    laplacian: str = "uniform"
+    solver: str = "cholespy"
+    mode_gain: float = 0.0
+    adam_betas: tuple[float, float] = (0.9, 0.999)
+    optimizer: str = "adam"
+    noise: float = 0.003
+    levels: int = 5
+
+    def __post_init__(self) -> None:
+        check_int("iterations", self.iterations, 1, MAX_ITERATIONS)
+        check_int("levels", self.levels, 1, MAX_LEVELS)
+        if self.optimizer not in OPTIMIZERS:
+            raise StatfitError(f"unknown optimizer {self.optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
+        if self.optimizer == "adam":
+            _check_number("lr (the step size)", self.lr, positive=True)
+        for name in ("beta", "lam", "mode_gain", "noise"):
+            _check_number(name, getattr(self, name))
+        _check_number("power", self.power, positive=True)
+        if self.laplacian not in LAPLACIANS:
+            raise StatfitError(f"unknown Laplacian {self.laplacian!r}; choose one of {', '.join(LAPLACIANS)}")
+        if self.solver not in SOLVERS:
+            raise StatfitError(f"unknown solver {self.solver!r}; choose one of {', '.join(SOLVERS)}")
+        if len(self.adam_betas) != 2 or not all(0 <= b < 1 for b in self.adam_betas):
+            raise StatfitError(f"adam_betas must be two numbers in [0, 1), got {self.adam_betas}")
+
+    def describe(self) -> dict[str, Any]:
+        """The settings as a plain dict (for logs)."""
+        return asdict(self)
+
+
+def _check_number(name: str, value: float, positive: bool = False) -> None:
+    """A finite number, ≥ 0 (or > 0 with ``positive``)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise StatfitError(f"{name} must be a finite number, got {value!r}")
+    if value < 0 or (positive and value == 0):
+        raise StatfitError(f"{name} must be {'positive' if positive else 'at least 0'}, got {value!r}")
+
+
+def check_int(name: str, value: int, low: int, high: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not low <= value <= high:
+        raise StatfitError(f"{name} must be a whole number from {low} to {high:,}, got {value!r}")
+
+
+@dataclass(frozen=True)
+class FitSpace:
+    """The model in the fit frame, as tensors: mean (N, c), basis_t = Uᵀ (K, cN), std (K,); the
+    Laplacian comes from the mesh ``faces``, or is given ready (``laplacian_matrix``, e.g. an image grid's)."""
+
+    mean: torch.Tensor
+    basis_t: torch.Tensor
+    std: torch.Tensor
+    faces: np.ndarray | None
+    laplacian_matrix: sp.spmatrix | None = None
+
+    @classmethod
+    def of(cls, model: StatModel, frame: Frame | None = None, device: str | torch.device = "cpu",
+           dtype: torch.dtype = torch.float32) -> "FitSpace":
+        """``model``'s mean, basis and std-devs in ``frame`` (default: the template's unit frame,
+        :class:`statfit.frame.Frame`), as tensors on ``device``."""
+        frame = frame or Frame.of(model.template)
+
+        def as_tensor(array: np.ndarray) -> torch.Tensor:
+            return torch.as_tensor(np.ascontiguousarray(array), dtype=dtype, device=device)
+
+        return cls(as_tensor(frame.to_unit(model.template)), as_tensor(model.basis.T),
+                   as_tensor(model.std / frame.scale), model.faces)
