@@ -13,7 +13,9 @@ from pathlib import Path
 
 from common import Section, in_child, markdown_table, save_figure
 
-METHODS = ("default", "statistical", "hybrid", "laplacian", "pca", "regularized", "none")
+from statfit.methods import METHODS as REGISTRY  # noqa: E402
+
+METHODS = ("default", *(name for name, method in REGISTRY.items() if "register" in method.tuned))
 FULL = {"scan": ("jaw-open", "smile"), "normals": ("jaw-open",), "size": 256, "iterations": None, "methods": METHODS}
 QUICK = {"scan": ("jaw-open",), "normals": ("jaw-open",), "size": 96, "iterations": 60,
          "methods": ("default", "statistical", "laplacian", "pca")}

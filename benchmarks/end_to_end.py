@@ -17,7 +17,9 @@ from pathlib import Path
 from cases import normal_case, relative_errors, scan_case
 from common import ICT_MODEL, Section, markdown_table
 
-METHODS = ("statistical", "hybrid", "laplacian", "pca", "regularized", "none")
+from statfit.methods import METHODS as REGISTRY  # noqa: E402
+
+METHODS = tuple(name for name, method in REGISTRY.items() if "register" in method.tuned)
 FULL = {"register_iterations": None, "render_iterations": None, "size": 512, "methods": ("default", *METHODS)}
 QUICK = {"register_iterations": 50, "render_iterations": 30, "size": 128, "methods": ("default", "statistical", "laplacian")}
 

@@ -1,5 +1,5 @@
-"""Part 6: registration speed and accuracy side by side — the shipped default, the ``fast``
-pipeline and the closed-form ``pca`` on the ICT head (4,300-point scans).
+"""Part 6: registration speed and accuracy side by side — the shipped default and the closed-form
+``pca`` on the ICT head (4,300-point scans).
 
 1. Seconds of one fit (jaw-open case, timed inside a fresh process after a warm-up fit) on 1
    thread, 2 threads and the thread count statfit chooses, on a quiet machine and with a second
@@ -16,7 +16,7 @@ import time
 from cases import HELD_OUT_SCAN_CASES, STUDY_SCAN_CASES, scan_case
 from common import Section, in_child, markdown_table
 
-METHODS = ("default", "fast", "pca")
+METHODS = ("default", "pca")
 THREADS = (1, 2, None)  # None: statfit's choice
 FULL = {"cases": tuple(STUDY_SCAN_CASES), "iterations": None}
 QUICK = {"cases": ("jaw-open",), "iterations": 40}

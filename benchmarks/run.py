@@ -8,7 +8,8 @@ method), peers (largesteps, trimesh's non-rigid ICP, pycpd on the same scans), e
 CLI jobs per method, with peak memory), inpainting (texture inpainting per-step time at 1024²),
 register_speed (default / fast / pca seconds on 1, 2 and the chosen thread count, quiet and with a
 busy core, beside their errors on the nine study cases).
-``--quick`` runs small sizes and few iterations (a few minutes on 2 cores): it checks that everything
+``--only`` with parts of the list rewrites only those sections of an existing report (each marked
+as regenerated alone). ``--quick`` runs small sizes and few iterations (a few minutes on 2 cores): it checks that everything
 runs; its numbers are not the ones to quote. Raw numbers go to benchmarks/results/<part>[_quick].json.
 The ICT-FaceKit data must be at ../shared/data/ict-face (the parts on the ICT head need it).
 """
@@ -56,6 +57,18 @@ def report(sections: list[Section], info: dict, quick: bool, device: str, second
     return "\n".join(lines) + "\n"
 
 
+def merged(existing: str, sections: list[Section], info: dict, device: str) -> str:
+    """``existing`` report with the sections just measured replaced (or appended, numbered on), each
+    marked with the command, date and machine that regenerated it; the rest stays as it was."""
+    head, *bodies = existing.split("\n## ")
+    titled = {body.split("\n", 1)[0].split(". ", 1)[1]: body.split("\n", 1)[1] for body in bodies}
+    for section in sections:
+        note = (f"_Regenerated alone by `python benchmarks/run.py --only {section.name} --device {device}` on "
+                f"{info['date']} ({info['cpu']}, torch {info['torch']})._")
+        titled[section.title] = f"\n{note}\n\n{section.markdown}\n"
+    return head + "".join(f"\n## {n}. {title}\n{body}" for n, (title, body) in enumerate(titled.items(), 1))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="small sizes, few iterations (a few minutes)")
@@ -86,7 +99,11 @@ def main() -> None:
                   section.data)
         sections.append(section)
         print(f"[{part}] done in {time.perf_counter() - begin:.0f} s", flush=True)
-    text = report(sections, machine(args.device), args.quick, args.device, time.perf_counter() - started)
+    info = machine(args.device)
+    if set(parts) < set(PARTS) and args.out.is_file() and not args.quick:
+        text = merged(args.out.read_text(), sections, info, args.device)
+    else:
+        text = report(sections, info, args.quick, args.device, time.perf_counter() - started)
     args.out.write_text(text)
     print(f"wrote {args.out}")
 

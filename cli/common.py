@@ -1,7 +1,9 @@
 """Options and helpers shared by the commands."""
 from __future__ import annotations
 
+import math
 import sys
+import time
 import warnings
 from contextlib import contextmanager
 from pathlib import Path
@@ -13,24 +15,49 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, Ti
 
 from statfit.errors import StatfitError
 from statfit.importers.cache import open_any_model
+from statfit.methods import METHODS
 from statfit.model import StatModel, default_model_path, load_model
 
 stderr = Console(stderr=True)
+
+MAX_SEED = 2**32 - 1
+
+
+def within(low: float | None = None, high: float | None = None, *, above: bool = False):
+    """An option callback refusing NaN, infinities and values outside [low, high] (``above``: the
+    low end excluded), so a bad number is one line before any work, whatever the command."""
+    def check(value):
+        if value is None:
+            return value
+        low_ok = low is None or (value > low if above else value >= low)
+        if not (math.isfinite(value) and low_ok and (high is None or value <= high)):
+            lower = "" if low is None else (f"> {low:g}" if above else f"≥ {low:g}")
+            upper = "" if high is None else f"≤ {high:g}"
+            bounds = " and ".join(b for b in (lower, upper) if b)
+            raise typer.BadParameter(f"must be a finite number{' ' + bounds if bounds else ''}, got {value}")
+        return value
+
+    return check
+
+
+def seed_option(default: int, help: str):
+    """A seed option: a whole number from 0 to 2³² − 1."""
+    return typer.Option(default, help=help, callback=within(0, MAX_SEED))
 
 ModelOption = typer.Option(None, "--model", "-m", help="Model npz (v_template, faces, shapedirs), or an "
                            "original model (FLAME/SMPL-X .pkl/.npz, ICT-FaceKit folder, BFM 2017 .h5): imported "
                            "once and cached in $STATFIT_CACHE_DIR (default ~/.cache/statfit). "
                            "Default: the embedded synthetic head.", show_default=False)
 KOption = typer.Option(None, "--k", help="Use only the first K modes of the model.", show_default=False)
-MethodOption = typer.Option("default", help="default (the measured best pipeline), statistical, hybrid, "
-                            "laplacian, pca (register: closed-form Gauss-Newton, ~15x sooner than default), "
-                            "regularized or none.")
+MethodOption = typer.Option("default", help="default (the measured best pipeline) or one method: "
+                            + "; ".join(f"{name}: {method.summary}" for name, method in METHODS.items())
+                            + ". register's pca is a closed-form Gauss-Newton fit (~15x sooner than default).")
 PresetOption = typer.Option("tuned", help="tuned (our measured defaults) or paper (the paper's settings, exactly).")
 DeviceOption = typer.Option("cpu", help="auto, cpu or cuda.")
 ThreadsOption = typer.Option(None, help="CPU threads for the fit. Default: 1 for head-sized models (a second "
                              "thread gains little and stalls when the other core is busy), all cores for large ones.",
                              show_default=False)
-SeedOption = typer.Option(0, help="Random seed; the same seed gives the same mesh.")
+SeedOption = seed_option(0, "Random seed; the same seed gives the same mesh.")
 LogOption = typer.Option(None, help="JSON-lines log: header, a record every 10 iterations, summary.",
                          show_default=False)
 QuietOption = typer.Option(False, "--quiet", "-q", help="No progress bar.")
@@ -63,6 +90,25 @@ def open_model(path: Path | None, k: int | None = None) -> StatModel:
     return open_any_model(path, k=k) if path is not None else load_model(default_model_path(), k)
 
 
+# Without a terminal, a progress line at most this often (seconds).
+PROGRESS_LINE_SECONDS = 5.0
+
+
+def _progress_lines(total: int, label: str):
+    """``advance(iteration, terms)`` printing "label: iteration i/total, loss L, Ns" now and then."""
+    started = last = time.perf_counter()
+
+    def advance(iteration: int, terms: dict[str, float]) -> None:
+        nonlocal last
+        now = time.perf_counter()
+        if now - last >= PROGRESS_LINE_SECONDS:
+            last = now
+            print(f"statfit: {label}: iteration {iteration + 1}/{total}, loss {terms.get('total', float('nan')):.4g}, "
+                  f"{now - started:.0f} s", file=sys.stderr, flush=True)
+
+    return advance
+
+
 def warn(message: str) -> None:
     print(f"statfit: warning: {message}", file=sys.stderr)
 
@@ -79,9 +125,13 @@ def printed_warnings() -> Iterator[None]:
 
 @contextmanager
 def progress_bar(total: int, label: str, enabled: bool):
-    """A rich progress bar on stderr when it is a terminal; yields ``advance(iteration, terms)``."""
-    if not enabled or not sys.stderr.isatty():
+    """A rich progress bar on stderr when it is a terminal, else (CI, nohup, a pipe) a plain line every
+    ``PROGRESS_LINE_SECONDS``; yields ``advance(iteration, terms)``."""
+    if not enabled:
         yield lambda iteration, terms: None
+        return
+    if not sys.stderr.isatty():
+        yield _progress_lines(total, label)
         return
     columns = (TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                TextColumn("loss {task.fields[loss]}"), TimeElapsedColumn(), TimeRemainingColumn())

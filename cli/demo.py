@@ -6,18 +6,18 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from statfit.methods import resolve
+from statfit.methods import METHODS, resolve
 from statfit.metrics import evaluate, observed_vertices
 from statfit.register import register as fit_scan
 from statfit.synth import sample_target, scan_from_view
-from statfit_cli.common import open_model, progress_bar
+from statfit_cli.common import open_model, progress_bar, seed_option, within
 
-DEMO_METHODS = ("default", "statistical", "hybrid", "laplacian", "pca", "regularized", "none")
+DEMO_METHODS = ("default", *(name for name, method in METHODS.items() if "register" in method.tuned))
 
 
 def demo(
-    seed: int = typer.Option(3, help="Seed of the synthetic target and scan."),
-    yaw: float = typer.Option(30.0, help="View of the partial scan, degrees."),
+    seed: int = seed_option(3, "Seed of the synthetic target and scan."),
+    yaw: float = typer.Option(30.0, help="View of the partial scan, degrees.", callback=within(-360, 360)),
     iterations: int = typer.Option(None, help="Iterations for every method (default: each method's own).",
                                    show_default=False),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars."),

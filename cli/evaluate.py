@@ -13,9 +13,11 @@ from statfit.errors import StatfitError
 from statfit.io.mesh import read_mesh, read_points
 from statfit.io.normalmap import camera_for_map, read_normal_map
 from statfit.metrics import evaluate as evaluate_fit, observed_vertices, visible_vertices
-from statfit.model import region_vertices
+from statfit.model import region_vertices, units_guess
 from statfit_cli.common import open_model
 
+
+MILLIMETRES_PER_UNIT = {"metres": 1000.0, "centimetres": 10.0, "millimetres": 1.0}
 
 def evaluate(
     fit: Path = typer.Argument(..., help="Fitted mesh.", show_default=False),
@@ -58,13 +60,17 @@ def evaluate(
     if json_out:
         print(json.dumps(report))
         return
-    table = Table(title=f"{fit.name} vs {gt.name} (model RMS radius {report['scale']:.4g})")
-    for column in ("vertices", "count", "mean", "median", "max", "mean / radius"):
+    units = units_guess(gt_vertices)
+    to_mm = MILLIMETRES_PER_UNIT.get(units.split()[0])
+    shown = "mm" if to_mm else "mesh units"
+    note = f"units guessed from its size: {units}, shown in mm" if to_mm else "units unknown: shown as stored"
+    table = Table(title=f"{fit.name} vs {gt.name} (RMS radius {report['scale'] * (to_mm or 1):.4g} {shown}; {note})")
+    for column in ("vertices", "count", f"mean {shown}", f"median {shown}", f"max {shown}", "mean / radius"):
         table.add_column(column, justify="right")
     for name, row in report.items():
         if isinstance(row, dict):
-            table.add_row(name, str(row["count"]), f"{row['mean']:.4g}", f"{row['median']:.4g}",
-                          f"{row['max']:.4g}", f"{row['mean_rel']:.4f}")
+            table.add_row(name, str(row["count"]), *(f"{row[k] * (to_mm or 1):.3f}" for k in ("mean", "median", "max")),
+                          f"{row['mean_rel']:.4f}")
     Console().print(table)
 
 

@@ -6,6 +6,7 @@ import warnings
 
 import typer
 
+from statfit import __version__
 from statfit.errors import StatfitError
 from statfit.threads import flush_denormals_everywhere
 from statfit_cli import demo, evaluate, inpaint, model, register, render, synth, texture
@@ -15,6 +16,18 @@ app = typer.Typer(
          "Start with `statfit demo`; `statfit COMMAND --help` explains each command.",
     no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False, rich_markup_mode=None,
 )
+def _version(show: bool) -> None:
+    if show:
+        print(f"statfit {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _options(version: bool = typer.Option(False, "--version", help="Print the version and exit.",
+                                          callback=_version, is_eager=True)) -> None:
+    """Options of statfit itself (before the command)."""
+
+
 app.command("register")(register.register)
 app.command("render")(render.render)
 app.command("demo")(demo.demo)

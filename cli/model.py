@@ -14,7 +14,7 @@ from statfit.errors import StatfitError
 from statfit.importers import import_model
 from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, write_atomic
 from statfit.model import StatModel, save_model, units_guess
-from statfit_cli.common import SeedOption, open_model
+from statfit_cli.common import SeedOption, open_model, printed_warnings, seed_option, within
 
 app = typer.Typer(help="Import, build, inspect and sample statistical models.", no_args_is_help=True)
 
@@ -83,7 +83,7 @@ def build(
     out: Path = typer.Option(..., "--out", "-o", help="Model npz to write.", show_default=False),
     k: int = typer.Option(None, "--k", help="Principal components to keep. Default: all (meshes − 1).",
                           show_default=False),
-    seed: int = typer.Option(0, help="Seed of the randomised SVD (used for many large meshes)."),
+    seed: int = seed_option(0, "Seed of the randomised SVD (used for many large meshes)."),
     json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
 ) -> None:
     """Build a PCA model from meshes in correspondence (e.g. registrations of many scans):
@@ -92,7 +92,8 @@ def build(
         statfit model build registered/*.ply -o mine.npz --k 50
     """
     _check_output(out, *meshes)
-    built = build_model_from_files(meshes, k, seed=seed)
+    with printed_warnings():
+        built = build_model_from_files(meshes, k, seed=seed)
     save_model(built.model, out)
     report = {"output": str(out), "meshes": len(meshes), "vertices": built.model.num_vertices,
               "modes": built.model.num_modes, "variance_explained": _explained(built.variance_explained, True)}
@@ -109,7 +110,8 @@ def sample(
                                       show_default=False),
     out: str = typer.Option(..., "--out", "-o", help="Mesh to write (.ply or .obj; '-' for PLY on stdout).",
                             show_default=False),
-    sigma: float = typer.Option(1.0, help="Coefficients ~ N(0, sigma²) in standard deviations; 0 gives the template."),
+    sigma: float = typer.Option(1.0, help="Coefficients ~ N(0, sigma²) in standard deviations; 0 gives the template.",
+                               callback=within(0, 100)),
     seed: int = SeedOption,
 ) -> None:
     """A random shape from the model, in the model's topology and units.

@@ -6,6 +6,7 @@ from pathlib import Path
 import typer
 
 from statfit.errors import StatfitError
+from statfit.io.files import existing_file
 from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_points
 from statfit.io.landmarks import read_landmarks
 from statfit.methods import resolve
@@ -13,7 +14,7 @@ from statfit.register import register as fit_scan, resolve_device
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
                                 LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
                                 PowerOption, PresetOption, QuietOption, SeedOption, ThreadsOption, open_model,
-                                setting_overrides)
+                                setting_overrides, within)
 from statfit_cli.runner import finish, fit_run
 
 
@@ -67,8 +68,10 @@ def register(
     lam: float = LamOption,
     laplacian: str = LaplacianOption,
     mode_gain: float = ModeGainOption,
-    refresh: int = typer.Option(10, help="Recompute closest surface points every N iterations."),
-    trim: float = typer.Option(0.05, help="Fraction of farthest scan points ignored (outlier robustness)."),
+    refresh: int = typer.Option(10, help="Recompute closest surface points every N iterations.",
+                                 callback=within(1, 100_000)),
+    trim: float = typer.Option(0.05, help="Fraction of farthest scan points ignored (outlier robustness).",
+                               callback=within(0, 0.99)),
     quiet: bool = QuietOption,
     json_out: bool = JsonOption,
 ) -> None:
@@ -93,15 +96,16 @@ def register(
         if log_path is not None:
             check_writable(log_path)
     for scan in scans:
-        if scan != "-" and not Path(scan).is_file():
-            raise StatfitError(f"scan not found: {scan}")
+        if scan != "-":
+            existing_file(scan, "scan")
     if landmarks is not None and len(targets) > 1:
         raise StatfitError("--landmarks belong to one scan; fit several scans one by one")
     model = open_model(model_path, k)
     scan_landmarks = read_landmarks(landmarks) if landmarks is not None else None
     total = sum(s.iterations for s in stages)
+    scans_points = {scan: read_points(scan) for scan, _, _ in targets}  # every scan checked before the first fit
     for scan, target, log_path in targets:
-        points = read_points(scan)
+        points = scans_points[scan]
         header = dict(method=method, preset=preset, stages=[s.describe() for s in stages], model=model.source,
                       modes=model.num_modes, input=scan, points=len(points), align=align, device=str(torch_device),
                       threads=threads, seed=seed, refresh=refresh, trim=trim, region=region,

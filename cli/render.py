@@ -16,7 +16,7 @@ from statfit.register import resolve_device
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
                                 LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
                                 PowerOption, PresetOption, QuietOption, SeedOption, ThreadsOption, open_model,
-                                setting_overrides)
+                                setting_overrides, within)
 from statfit_cli.runner import finish, fit_run
 
 
@@ -44,7 +44,8 @@ def render(
                                           "z forward) or opengl (x right, y up, z towards the viewer)."),
     mask: Path = typer.Option(None, help="Mask image (white = foreground) replacing the EXR's alpha.",
                               show_default=False),
-    silhouette_weight: float = typer.Option(SILHOUETTE_WEIGHT, help="Weight of the silhouette term (0: off)."),
+    silhouette_weight: float = typer.Option(SILHOUETTE_WEIGHT, help="Weight of the silhouette term (0: off).",
+                                            callback=within(0, 1e6)),
     region: str = typer.Option(None, "--region", help="Fit only the model's region NAME (e.g. face): after the "
                                "alignment, only pixels showing the region's triangles count and the silhouette is "
                                "not used; the rest of the mesh follows the model's prior.", show_default=False),
@@ -70,8 +71,6 @@ def render(
         statfit render normals.exr --camera camera.json --model model.npz --out fit.ply --preview fit.png
     """
     overrides = setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain)
-    if silhouette_weight < 0:
-        raise StatfitError("--silhouette-weight must be at least 0")
     stages = resolve(method, preset, job="render", **overrides)
     torch_device = resolve_device(device)
     out = out or Path(f"{normal_map_path.stem}_fit.ply")

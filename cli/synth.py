@@ -10,17 +10,17 @@ from statfit.errors import StatfitError
 from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, points_bytes, write_atomic
 from statfit.io.normalmap import write_camera, write_normal_map
 from statfit.synth import camera_for_view, load_delta, render_target, sample_target, scan_from_view
-from statfit_cli.common import ModelOption, open_model
+from statfit_cli.common import ModelOption, open_model, seed_option, within
 
 app = typer.Typer(help="Make synthetic test data from a model, with its ground truth.", no_args_is_help=True)
 
 
-SeedOption = typer.Option(0, help="Seed of the shape (and of the point sampling).")
-SigmaOption = typer.Option(1.0, help="Coefficients ~ N(0, sigma²) in std-dev units.")
+SeedOption = seed_option(0, "Seed of the shape (and of the point sampling).")
+SigmaOption = typer.Option(1.0, help="Coefficients ~ N(0, sigma²) in std-dev units.", callback=within(0, 100))
 GtOption = typer.Option(None, help="Ground-truth mesh (template topology).", show_default=False)
 DeltaOption = typer.Option(None, help="npz of off-model deltas (names (D,), deltas (N, 3, D)).", show_default=False)
 DeltaNameOption = typer.Option(None, help="Which delta to add, e.g. jawOpen.", show_default=False)
-DeltaWeightOption = typer.Option(1.0, help="Weight of the delta.")
+DeltaWeightOption = typer.Option(1.0, help="Weight of the delta.", callback=within(-100, 100))
 
 
 def check_delta_options(delta: Path | None, delta_name: str | None) -> None:
@@ -41,11 +41,14 @@ def scan(
     model_path: Path = ModelOption,
     seed: int = SeedOption,
     sigma: float = SigmaOption,
-    yaw: float = typer.Option(30.0, help="View direction, degrees about +y (0 looks at the +z face)."),
-    pitch: float = typer.Option(0.0, help="View elevation, degrees."),
-    points: int = typer.Option(4300, help="Number of scan points."),
-    noise: float = typer.Option(0.0, help="Gaussian noise, as a fraction of the shape's RMS radius."),
-    outliers: float = typer.Option(0.0, help="Fraction of points replaced by uniform outliers."),
+    yaw: float = typer.Option(30.0, help="View direction, degrees about +y (0 looks at the +z face).",
+                             callback=within(-360, 360)),
+    pitch: float = typer.Option(0.0, help="View elevation, degrees.", callback=within(-89, 89)),
+    points: int = typer.Option(4300, help="Number of scan points.", callback=within(10, 10_000_000)),
+    noise: float = typer.Option(0.0, help="Gaussian noise, as a fraction of the shape's RMS radius.",
+                               callback=within(0, 1)),
+    outliers: float = typer.Option(0.0, help="Fraction of points replaced by uniform outliers.",
+                                  callback=within(0, 1)),
     delta: Path = DeltaOption,
     delta_name: str = DeltaNameOption,
     delta_weight: float = DeltaWeightOption,
@@ -80,10 +83,11 @@ def normals(
     model_path: Path = ModelOption,
     seed: int = SeedOption,
     sigma: float = SigmaOption,
-    yaw: float = typer.Option(20.0, help="View direction, degrees about +y (0 looks at the +z face)."),
-    pitch: float = typer.Option(0.0, help="View elevation, degrees."),
-    size: int = typer.Option(512, help="Image width and height, pixels."),
-    fov: float = typer.Option(30.0, help="Vertical field of view, degrees."),
+    yaw: float = typer.Option(20.0, help="View direction, degrees about +y (0 looks at the +z face).",
+                             callback=within(-360, 360)),
+    pitch: float = typer.Option(0.0, help="View elevation, degrees.", callback=within(-89, 89)),
+    size: int = typer.Option(512, help="Image width and height, pixels.", callback=within(16, 8192)),
+    fov: float = typer.Option(30.0, help="Vertical field of view, degrees.", callback=within(1, 170)),
     delta: Path = DeltaOption,
     delta_name: str = DeltaNameOption,
     delta_weight: float = DeltaWeightOption,

@@ -14,7 +14,7 @@ from statfit.errors import StatfitError
 from statfit.io.image import IMAGE_SUFFIXES, read_image
 from statfit.io.mesh import check_writable
 from statfit.texture.model import build_texture_model
-from statfit_cli.common import QuietOption, printed_warnings, stderr
+from statfit_cli.common import QuietOption, printed_warnings, seed_option, stderr, within
 
 PCA_KINDS = {"auto": None, "exact": False, "randomized": True}
 
@@ -36,6 +36,9 @@ def image_files(inputs: list[str]) -> list[Path]:
     return files
 
 
+MAX_SIDE = 8192
+
+
 def parse_size(size: str) -> tuple[int, int]:
     """``256`` → (256, 256); ``HxW`` → (H, W)."""
     parts = size.lower().split("x")
@@ -43,8 +46,8 @@ def parse_size(size: str) -> tuple[int, int]:
         height, width = (int(parts[0]), int(parts[0])) if len(parts) == 1 else (int(parts[0]), int(parts[1]))
     except ValueError:
         raise StatfitError(f"--size must be N or HEIGHTxWIDTH, got {size!r}") from None
-    if len(parts) > 2 or height < 2 or width < 2:
-        raise StatfitError(f"--size must be N or HEIGHTxWIDTH with sides of at least 2, got {size!r}")
+    if len(parts) > 2 or not (2 <= height <= MAX_SIDE and 2 <= width <= MAX_SIDE):
+        raise StatfitError(f"--size must be N or HEIGHTxWIDTH with sides from 2 to {MAX_SIDE}, got {size!r}")
     return height, width
 
 
@@ -53,13 +56,13 @@ def build_texture(
                                        "or quoted glob patterns.", show_default=False),
     out: Path = typer.Option(..., "--out", "-o", help="Model npz to write.", show_default=False),
     k: int = typer.Option(200, "--k", help="Modes to keep (at most the number of samples − 1)."),
-    size: str = typer.Option("256", help="Model resolution: N (square) or HEIGHTxWIDTH; every image is resampled "
-                             "to it."),
+    size: str = typer.Option(None, help="Model resolution: N (square) or HEIGHTxWIDTH; every image is resampled "
+                             "to it. Default: the first image's own size.", show_default=False),
     jitter: int = typer.Option(0, help="Add N colour-jittered copies of each texture (brightness, contrast and a "
                                "per-channel gain), so the model learns colour variation: 176 textures with "
-                               "--jitter 9 give 1,760 samples."),
+                               "--jitter 9 give 1,760 samples.", callback=within(0, 1000)),
     pca: str = typer.Option("auto", help="auto (randomised for large problems), exact or randomized."),
-    seed: int = typer.Option(0, help="Seed of the jitter and the randomised PCA."),
+    seed: int = seed_option(0, "Seed of the jitter and the randomised PCA."),
     quiet: bool = QuietOption,
     json_out: bool = typer.Option(False, "--json", help="Print a summary as JSON on stdout."),
 ) -> None:
@@ -73,13 +76,13 @@ def build_texture(
     """
     if pca not in PCA_KINDS:
         raise StatfitError(f"unknown --pca {pca!r}; choose auto, exact or randomized")
-    if jitter < 0:
-        raise StatfitError("--jitter must be at least 0")
     if k < 1:
         raise StatfitError("--k must be at least 1")
-    shape = parse_size(size)
+    shape = parse_size(size) if size is not None else None
     check_writable(out)
     files = image_files(inputs)
+    if shape is None:
+        shape = read_image(files[0]).shape[:2]
     started = time.perf_counter()
     show = not quiet and sys.stderr.isatty()
     images = ((str(f), read_image(f)) for f in files)

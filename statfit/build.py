@@ -1,13 +1,15 @@
 """Build a model from registered meshes (same topology, vertices in correspondence) by PCA."""
 from __future__ import annotations
 
+import warnings
+
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
-from statfit.errors import StatfitError
+from statfit.errors import StatfitError, StatfitWarning
 from statfit.io.mesh import read_mesh
 from statfit.model import StatModel, model_from_arrays
 from statfit.pca import principal_components
@@ -37,7 +39,11 @@ def build_model(meshes: Sequence[tuple[np.ndarray, np.ndarray]], k: int | None =
             raise StatfitError(f"the faces of {name} differ from those of the first mesh ({names[0]}): "
                                "meshes must share one topology")
     samples = np.stack([vertices.reshape(-1) for vertices, _ in meshes])
-    pca = principal_components(samples, k if k is not None else len(meshes) - 1, randomized=randomized, seed=seed)
+    most = len(meshes) - 1
+    if k is not None and k > most:  # as build_texture_model does: a model, with a word on what it can hold
+        warnings.warn(f"{len(meshes)} meshes give at most {most} modes; keeping {most}", StatfitWarning)
+        k = most
+    pca = principal_components(samples, most if k is None else k, randomized=randomized, seed=seed)
     n = len(first_vertices)
     model = model_from_arrays(pca.mean.reshape(n, 3), faces, pca.scaled_directions.T.reshape(n, 3, -1),
                               source=f"PCA of {len(meshes)} meshes")

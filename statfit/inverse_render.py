@@ -162,6 +162,8 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
     """
     if align not in ALIGNMENTS:
         raise StatfitError(f"unknown alignment {align!r}; choose one of {', '.join(ALIGNMENTS)}")
+    if not (np.isfinite(silhouette_weight) and silhouette_weight >= 0):
+        raise StatfitError(f"silhouette_weight must be a finite number ≥ 0, got {silhouette_weight}")
     stages = stages or resolve(method, preset, job="render", **overrides)
     torch_device = resolve_device(device)
     work = model.basis.size + RENDER_FLOATS_PER_PIXEL * normal_map.mask.size

@@ -18,6 +18,9 @@ OPTIMIZERS = ("adam", "gauss-newton")
 LAPLACIANS = ("uniform", "cotangent")
 MAX_ITERATIONS = 10_000_000
 MAX_LEVELS = 20
+# Upper bounds: far beyond any useful value (β 1000, λ 300, γ 1, σ 0.003 are the largest tuned ones),
+# below what breaks the arithmetic (λ 10³⁰ makes I + λL numerically indefinite; β^p overflows).
+LIMITS = {"beta": 1e9, "lam": 1e9, "mode_gain": 100.0, "noise": 1e3, "power": 100.0}
 
 
 @dataclass(frozen=True)
@@ -55,9 +58,10 @@ class Settings:
             raise StatfitError(f"unknown optimizer {self.optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
         if self.optimizer == "adam":
             _check_number("lr (the step size)", self.lr, positive=True)
-        for name in ("beta", "lam", "mode_gain", "noise"):
-            _check_number(name, getattr(self, name))
-        _check_number("power", self.power, positive=True)
+        for name, high in LIMITS.items():
+            _check_number(name, getattr(self, name), high=high, positive=name == "power")
+        if not math.isfinite(self.beta_effective):
+            raise StatfitError(f"(1 + beta)^power overflows: beta {self.beta}, power {self.power}")
         if self.laplacian not in LAPLACIANS:
             raise StatfitError(f"unknown Laplacian {self.laplacian!r}; choose one of {', '.join(LAPLACIANS)}")
         if self.solver not in SOLVERS:
@@ -65,17 +69,27 @@ class Settings:
         if len(self.adam_betas) != 2 or not all(0 <= b < 1 for b in self.adam_betas):
             raise StatfitError(f"adam_betas must be two numbers in [0, 1), got {self.adam_betas}")
 
+    @property
+    def beta_effective(self) -> float:
+        """β' = (1 + β)^p − 1, the filter's β once the power is applied (inf where it overflows)."""
+        try:
+            return (1.0 + self.beta) ** self.power - 1.0
+        except OverflowError:
+            return math.inf
+
     def describe(self) -> dict[str, Any]:
         """The settings as a plain dict (for logs)."""
         return asdict(self)
 
 
-def _check_number(name: str, value: float, positive: bool = False) -> None:
-    """A finite number, ≥ 0 (or > 0 with ``positive``)."""
+def _check_number(name: str, value: float, positive: bool = False, high: float = math.inf) -> None:
+    """A finite number, ≥ 0 (or > 0 with ``positive``), at most ``high``."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         raise StatfitError(f"{name} must be a finite number, got {value!r}")
     if value < 0 or (positive and value == 0):
         raise StatfitError(f"{name} must be {'positive' if positive else 'at least 0'}, got {value!r}")
+    if value > high:
+        raise StatfitError(f"{name} must be at most {high:g}, got {value!r}")
 
 
 def check_int(name: str, value: int, low: int, high: int) -> None:

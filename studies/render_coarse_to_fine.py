@@ -12,7 +12,14 @@ per-vertex distance to the ground truth over all vertices / its RMS radius (benc
 and error evaluation not). One thread, one process. The error is also traced every 100 iterations
 (``on_snapshot``) so a truncated run's error can be read off.
 
-    python studies/render_coarse_to_fine.py [--schedules a,b] [--cases a,b]   # measure (cached)
+Finding (this CPU, one thread, the other core busy): coarse levels save little per iteration
+(~32 ms at 512², ~22 ms at 256² and 128²: rasterising and filtering the mesh dominate) and end
+worse (jaw-open plateaus at 0.039 from 256², 0.042 from 128²); neither a larger step nor Adam's β2
+speeds up the default's slow late phase. The off-model gain does: β 10 reaches the default's
+3000-iteration error in ~300–450 iterations, but alone it overshoots brow-up; β 30 first, then β 10,
+meets the default on all four cases in < 30 s ("512: hyb 150 lr .05 → hyb 300 lr .05 β10").
+
+    python studies/render_coarse_to_fine.py [--schedules a,b|all] [--cases a,b]   # measure (cached)
     python studies/render_coarse_to_fine.py --report                          # markdown table
 """
 from __future__ import annotations
@@ -33,20 +40,24 @@ RESULTS = ROOT / "studies" / "results" / "render_coarse_to_fine.json"
 SIZE = 512
 CASE_NAMES = ("jaw-open", "smile", "brow-up", "puff")
 TRACE_EVERY = 100
+# Measured on all four cases by a plain run; the rest were screened on two cases (--schedules all).
+FINALISTS = ("default (shipped)", "512: hyb 450 lr .03 β10", "512: hyb 150 lr .05 → hyb 300 lr .05 β10",
+             "512: hyb 200 lr .03 → hyb 300 lr .05 β10")
 
 
 def schedules() -> dict:
     """name → ((image size, (Settings, ...)), ...)."""
-    from statfit.methods import RENDER_PIPELINES, Settings
+    from statfit.methods import Settings
 
-    def hyb(iterations: int, lr: float = 0.01) -> Settings:
-        return Settings("hybrid", iterations, lr, beta=30.0, lam=19.0, mode_gain=1.0)
+    def hyb(iterations: int, lr: float = 0.01, b2: float = 0.999, **kw) -> Settings:
+        return Settings("hybrid", iterations, lr, **({"beta": 30.0, "lam": 19.0, "mode_gain": 1.0} | kw),
+                        adam_betas=(0.9, b2))
 
     def pca(iterations: int, lr: float = 0.05) -> Settings:
         return Settings("pca", iterations, lr)
 
     return {
-        "default (shipped)": ((512, RENDER_PIPELINES["default"]),),
+        "default (shipped)": ((512, (hyb(3000),)),),  # RENDER default: hybrid β 30, λ 19, γ 1, lr 0.01
         # screening (jaw-open, smile)
         "512: hyb 500 lr .03": ((512, (hyb(500, 0.03),)),),
         "256: hyb 800 lr .03 → 512: hyb 100": ((256, (hyb(800, 0.03),)), (512, (hyb(100),))),
@@ -56,6 +67,22 @@ def schedules() -> dict:
         "128: hyb 800 lr .03 → 512: hyb 100": ((128, (hyb(800, 0.03),)), (512, (hyb(100),))),
         "256: pca 300 lr .1 → hyb 500 lr .03 → 512: hyb 100": ((256, (pca(300, 0.1), hyb(500, 0.03))),
                                                               (512, (hyb(100),))),
+        "512: hyb 600 lr .03 b2 .99": ((512, (hyb(600, 0.03, 0.99),)),),
+        "512: hyb 600 lr .01 b2 .99": ((512, (hyb(600, 0.01, 0.99),)),),
+        "512: hyb 600 lr .03 b2 .9": ((512, (hyb(600, 0.03, 0.9),)),),
+        "512: hyb 300 lr .05 → hyb 300 lr .01": ((512, (hyb(300, 0.05), hyb(300))),),
+        "512: hyb 600 lr .03 β10": ((512, (hyb(600, 0.03, beta=10.0),)),),
+        "512: hyb 600 lr .03 β3": ((512, (hyb(600, 0.03, beta=3.0),)),),
+        "512: hyb 600 lr .03 γ.5": ((512, (hyb(600, 0.03, mode_gain=0.5),)),),
+        # finalists (β 10: off-model gain 1/11 instead of 1/31)
+        "512: hyb 450 lr .03 β10": ((512, (hyb(450, 0.03, beta=10.0),)),),
+        "256: hyb 400 lr .03 β10 → 512: hyb 150 lr .03 β10": ((256, (hyb(400, 0.03, beta=10.0),)),
+                                                             (512, (hyb(150, 0.03, beta=10.0),))),
+        "512: hyb 400 lr .05 β10": ((512, (hyb(400, 0.05, beta=10.0),)),),
+        "512: hyb 450 lr .03 β20": ((512, (hyb(450, 0.03, beta=20.0),)),),
+        "512: hyb 200 lr .03 → hyb 250 lr .03 β10": ((512, (hyb(200, 0.03), hyb(250, 0.03, beta=10.0))),),
+        "512: hyb 150 lr .05 → hyb 300 lr .05 β10": ((512, (hyb(150, 0.05), hyb(300, 0.05, beta=10.0))),),
+        "512: hyb 200 lr .03 → hyb 300 lr .05 β10": ((512, (hyb(200, 0.03), hyb(300, 0.05, beta=10.0))),),
     }
 
 
@@ -113,7 +140,13 @@ def run(schedule, gt, normal_map, camera, visible) -> dict:
 
 
 def describe(schedule) -> list:
-    return [[size, [s.describe() for s in stages]] for size, stages in schedule]
+    """The schedule as plain lists (the cache key): per level, its size and per stage the
+    settings that vary here."""
+    keys = ("method", "iterations", "lr", "beta", "lam", "mode_gain")
+    def one(s) -> list:
+        return [getattr(s, k) for k in keys] + ([] if s.adam_betas == (0.9, 0.999) else [list(s.adam_betas)])
+
+    return [[size, [one(s) for s in stages]] for size, stages in schedule]
 
 
 def load() -> list[dict]:
@@ -142,7 +175,8 @@ def report(results: list[dict]) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--schedules", default=None, help="comma-separated names (default: all)")
+    parser.add_argument("--schedules", default=None,
+                        help="comma-separated names, or 'all' (default: the default and the finalists)")
     parser.add_argument("--cases", default=",".join(CASE_NAMES))
     parser.add_argument("--report", action="store_true")
     args = parser.parse_args()
@@ -153,7 +187,8 @@ def main() -> None:
 
     torch.set_num_threads(1)
     table = schedules()
-    names = args.schedules.split(",") if args.schedules else list(table)
+    names = (list(table) if args.schedules == "all" else args.schedules.split(",") if args.schedules
+             else list(FINALISTS))
     for case_name in args.cases.split(","):
         data = None
         for name in names:

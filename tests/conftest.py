@@ -48,3 +48,20 @@ def rng():
 @pytest.fixture(autouse=True)
 def _threads():
     torch.set_num_threads(2)
+
+
+def run_cli(argv: list[str]) -> tuple[int, str]:
+    """Run ``statfit argv`` in this process: (exit code, stderr); stdout is discarded."""
+    import contextlib
+    import io
+
+    from statfit_cli.main import main
+
+    err = io.StringIO()
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
+        try:
+            main(argv)
+            code = 0
+        except SystemExit as exit_info:
+            code = exit_info.code if isinstance(exit_info.code, int) else 1
+    return code, err.getvalue()

@@ -208,3 +208,35 @@ def test_similarity_alignment_takes_a_scan_in_other_units(scan_files, tmp_path, 
     fit = trimesh.load(tmp_path / "fit.ply", process=False).vertices
     truth = trimesh.load(gt, process=False).vertices * 1000
     assert np.linalg.norm(fit - truth, axis=1).mean() < 0.15 * np.sqrt(((truth - truth.mean(0)) ** 2).sum(1).mean())
+
+
+def test_outputs_honour_the_umask_and_long_names_fit(scan_files, tmp_path, capsys):
+    """A fit written as a shell redirect would be: mode 0666 & ~umask; a 250-character name works."""
+    import os
+
+    scan, _ = scan_files
+    out = tmp_path / ("f" * 246 + ".ply")
+    previous = os.umask(0o022)
+    try:
+        code, _, err = run(["register", str(scan), "--out", str(out), "--log", str(tmp_path / "fit.jsonl"), *FAST],
+                           capsys)
+    finally:
+        os.umask(previous)
+    assert code == 0, err
+    assert out.stat().st_mode & 0o777 == 0o644 and (tmp_path / "fit.jsonl").stat().st_mode & 0o777 == 0o644
+
+
+def test_progress_lines_without_a_terminal(scan_files, tmp_path, capsys, monkeypatch):
+    from statfit_cli import common
+
+    monkeypatch.setattr(common, "PROGRESS_LINE_SECONDS", 0.0)
+    scan, _ = scan_files
+    code, _, err = run(["register", str(scan), "--out", str(tmp_path / "f.ply"), "--iterations", "30"], capsys)
+    assert code == 0 and "statfit: scan.ply: iteration 11/30, loss" in err
+
+
+def test_version(capsys):
+    from statfit import __version__
+
+    code, out, _ = run(["--version"], capsys)
+    assert code == 0 and out.strip() == f"statfit {__version__}"

@@ -203,3 +203,23 @@ def test_inpaint_help_teaches(capsys):
     assert code == 0 and "--mask-invert" in out and "--resize" in out and "hybrid" in out
     code, out, _ = run(["model", "build-texture", "--help"], capsys)
     assert code == 0 and "--jitter" in out
+
+
+def test_build_texture_defaults_to_the_images_own_size(tmp_path, capsys):
+    """32 × 32 images give a 32 × 32 model, which inpaints a 32 × 32 image as it is (issue 17, #14)."""
+    from statfit.io.image import write_image
+
+    rng = np.random.default_rng(5)
+    for i in range(4):
+        write_image(tmp_path / f"t{i}.png", rng.random((32, 32, 3)).astype(np.float32))
+    mask = np.ones((32, 32, 1), np.float32)
+    mask[4:12, 4:12] = 0
+    write_image(tmp_path / "mask.png", mask)
+    code, _, err = run(["model", "build-texture", str(tmp_path / "t*.png"), "-o", str(tmp_path / "m.npz"),
+                        "--k", "2", "-q"], capsys)
+    assert code == 0, err
+    with np.load(tmp_path / "m.npz") as data:
+        assert data["image_size"].tolist() == [32, 32]
+    code, _, err = run(["inpaint", str(tmp_path / "t0.png"), "--mask", str(tmp_path / "mask.png"), "--model",
+                        str(tmp_path / "m.npz"), "--out", str(tmp_path / "o.png"), "--iterations", "5", "-q"], capsys)
+    assert code == 0, err

@@ -117,3 +117,28 @@ def test_a_plugin_package_adds_a_cli_method(tmp_path, embedded_model, rng):
                           "-q", "--json"], capture_output=True, text=True, env=env)
     assert run.returncode == 0, run.stderr
     assert '"method": "half-gain"' in run.stdout and (tmp_path / "fit.ply").is_file()
+
+
+BAD_OPTIONS = [["--beta", "-1"], ["--beta", "-0.5"], ["--lr", "-1"], ["--lr", "nan"], ["--lam", "-1"],
+               ["--power", "0"], ["--iterations", "999999999999999999999"], ["--iterations", "0"]]
+
+
+@pytest.mark.parametrize("command", ["register", "render", "inpaint"])
+@pytest.mark.parametrize("option", BAD_OPTIONS, ids=" ".join)
+def test_every_command_refuses_bad_settings_the_same_way(command, option, tmp_path, capsys):
+    """One line naming the setting, exit 2, nothing written, before any input is read (the inputs
+    here do not even exist)."""
+    from statfit_cli.main import main
+
+    argv = {"register": ["register", str(tmp_path / "missing.ply"), "--method", "statistical"],
+            "render": ["render", str(tmp_path / "missing.exr"), "--method", "hybrid"],
+            "inpaint": ["inpaint", str(tmp_path / "missing.png"), "--mask", str(tmp_path / "m.png"),
+                        "--method", "laplacian"]}[command]
+    if command == "inpaint" and option[0] == "--power":
+        option = ["--lam", "nan"]  # inpaint has no --power
+    with pytest.raises(SystemExit) as exit_info:
+        main([*argv, *option, "--out", str(tmp_path / "out.ply" if command != "inpaint" else tmp_path / "o.png")])
+    err = capsys.readouterr().err
+    setting = option[0].lstrip("-").replace("lr", "lr (the step size)")
+    assert exit_info.value.code == 2 and err.count("\n") == 1 and err.startswith(f"statfit: error: {setting}"), err
+    assert not any(tmp_path.iterdir())

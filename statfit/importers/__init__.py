@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from statfit.errors import StatfitError
+from statfit.io.files import existing_file
 from statfit.importers import smpl
 from statfit.importers.bfm import HDF5_SIGNATURE, import_bfm
 from statfit.importers.ict import NEUTRAL, import_ict
@@ -26,8 +27,7 @@ def model_format(path: str | Path) -> str:
         if (path / NEUTRAL).is_file():
             return "ict"
         raise StatfitError(f"{path} is a folder without {NEUTRAL}: not an ICT-FaceKit model")
-    if not path.is_file():
-        raise StatfitError(f"model file not found: {path}")
+    existing_file(path, "model file")
     with path.open("rb") as handle:
         head = handle.read(8)
     if not head:

@@ -6,15 +6,14 @@ from pathlib import Path
 import numpy as np
 
 from statfit.errors import StatfitError
+from statfit.io.files import existing_file
 from statfit.importers.safe_pickle import load_pickle
 
 
 def read_masks(path: str | Path) -> dict[str, np.ndarray]:
     """A dict of name → vertex index array from a pickle (FLAME_masks.pkl, read without running code)
     or an npz."""
-    path = Path(path)
-    if not path.is_file():
-        raise StatfitError(f"mask file not found: {path}")
+    path = existing_file(path, "mask file")
     if path.suffix.lower() == ".npz":
         try:
             with np.load(path, allow_pickle=False) as data:

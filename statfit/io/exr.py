@@ -12,10 +12,15 @@ import numpy as np
 import OpenEXR
 
 from statfit.errors import StatfitError
+from statfit.io.files import existing_file
 from statfit.io.mesh import write_atomic
 
 EXR_MAGIC = b"\x76\x2f\x31\x01"
 
+
+# The most values (pixels × channels) read from one EXR: an 8192² RGBA map. Larger headers are
+# refused before any pixel is decoded.
+MAX_VALUES = 1 << 28
 
 @contextmanager
 def _quiet_stderr() -> Iterator[None]:
@@ -39,11 +44,19 @@ def is_exr(path: str | Path) -> bool:
 def read_exr(path: str | Path, what: str = "file") -> tuple[dict, dict[str, np.ndarray]]:
     """Header and channels (name → (H, W) float32) of the EXR at ``path``; ``what`` names the file
     in messages (``normal map``, ``image``)."""
-    path = Path(path)
-    if not path.is_file():
-        raise StatfitError(f"{what} not found: {path}")
+    path = existing_file(path, what)
     if not is_exr(path):
         raise StatfitError(f"{path} is not an OpenEXR file")
+    try:
+        with _quiet_stderr(), OpenEXR.File(str(path), header_only=True) as exr:
+            low, high = (np.asarray(corner) for corner in exr.header()["dataWindow"])
+            width, height = (int(v) for v in high - low + 1)
+            layers = len(exr.channels()) or 1
+    except Exception as exc:  # the bindings raise RuntimeError and friends for damaged files
+        raise StatfitError(f"cannot read {path}: damaged OpenEXR file ({exc})") from None
+    if width <= 0 or height <= 0 or width * height * layers > MAX_VALUES:
+        raise StatfitError(f"{what} {path} declares {width}×{height} pixels × {layers} channels; statfit reads at "
+                           f"most {MAX_VALUES:,} values")
     try:
         with _quiet_stderr(), OpenEXR.File(str(path), separate_channels=True) as exr:
             header = dict(exr.header())

@@ -7,6 +7,7 @@ exactly; EXR values are kept as they are (float, not clipped on reading).
 from __future__ import annotations
 
 import io
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,7 @@ from PIL import Image, UnidentifiedImageError
 
 from statfit.errors import StatfitError
 from statfit.io.exr import exr_bytes, is_exr, read_exr
+from statfit.io.files import existing_file
 from statfit.io.mesh import write_atomic
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")
@@ -22,13 +24,14 @@ EXR_CHANNELS = {1: "Y", 3: "RGB", 4: "RGBA"}
 
 # A mask pixel is on above half grey (8-bit).
 MASK_THRESHOLD = 127
+# The most pixels an image may declare (8192²: 0.8 GB as float32 RGB); larger headers are refused
+# before anything is decoded.
+MAX_PIXELS = 1 << 26
 
 def read_image(path: str | Path) -> np.ndarray:
     """An image as float32 (H, W, C) with C = 1 (grey), 3 (RGB) or 4 (RGBA); values in [0, 1]
     for 8/16-bit files. Palette and grey-with-alpha images become RGB(A)."""
-    path = Path(path)
-    if not path.is_file():
-        raise StatfitError(f"image not found: {path}")
+    path = existing_file(path, "image")
     if path.stat().st_size == 0:
         raise StatfitError(f"{path} is empty")
     image = _read_exr(path) if is_exr(path) else _read_pillow(path)
@@ -39,16 +42,34 @@ def read_image(path: str | Path) -> np.ndarray:
 
 
 def _read_pillow(path: Path) -> np.ndarray:
+    return _opened(path, "image", _decoded)
+
+
+def _opened(path: Path, what: str, decode) -> np.ndarray:
+    """``decode(image, path)`` of the image file at ``path``, opened with Pillow; unreadable files
+    and headers declaring more than ``MAX_PIXELS`` (decompression bombs) are refused in one line."""
+    existing_file(path, what)
     try:
-        with Image.open(path) as image:
-            image.load()
-            if image.mode in ("I;16", "I;16B", "I;16L", "I"):
-                return (np.asarray(image, dtype=np.float32) / 65535.0)[..., None]
-            if image.mode not in ("L", "RGB", "RGBA"):
-                image = image.convert("RGBA" if "A" in image.getbands() or "transparency" in image.info else "RGB")
-            data = np.asarray(image, dtype=np.float32) / 255.0
-    except (OSError, ValueError, UnidentifiedImageError) as exc:
-        raise StatfitError(f"cannot read image {path}: {exc}") from None
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", Image.DecompressionBombWarning)
+            with Image.open(path) as image:
+                if image.width * image.height > MAX_PIXELS:
+                    raise StatfitError(f"{what} {path} declares {image.width}×{image.height} pixels, more than "
+                                       f"the {MAX_PIXELS:,} statfit reads")
+                return decode(image, path)
+    except (OSError, ValueError, UnidentifiedImageError, Image.DecompressionBombWarning,
+            Image.DecompressionBombError) as exc:
+        raise StatfitError(f"cannot read {what} {path}: {exc}") from None
+
+
+def _decoded(image: Image.Image, path: Path) -> np.ndarray:
+    """The opened ``image`` decoded to float32 (H, W, C)."""
+    image.load()
+    if image.mode in ("I;16", "I;16B", "I;16L", "I"):
+        return (np.asarray(image, dtype=np.float32) / 65535.0)[..., None]
+    if image.mode not in ("L", "RGB", "RGBA"):
+        image = image.convert("RGBA" if "A" in image.getbands() or "transparency" in image.info else "RGB")
+    data = np.asarray(image, dtype=np.float32) / 255.0
     return data[..., None] if data.ndim == 2 else data
 
 
@@ -100,14 +121,7 @@ def image_suffix(path: str | Path) -> str:
 
 
 def _read_grey_or_rgb(path: str | Path, what: str, mode: str) -> np.ndarray:
-    path = Path(path)
-    if not path.is_file():
-        raise StatfitError(f"{what} not found: {path}")
-    try:
-        with Image.open(path) as image:
-            return np.asarray(image.convert(mode))
-    except (OSError, ValueError, UnidentifiedImageError) as exc:
-        raise StatfitError(f"cannot read {what} {path}: {exc}") from None
+    return _opened(Path(path), what, lambda image, _: np.asarray(image.convert(mode)))
 
 
 def read_mask(path: str | Path) -> np.ndarray:

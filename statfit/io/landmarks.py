@@ -7,13 +7,12 @@ from pathlib import Path
 import numpy as np
 
 from statfit.errors import StatfitError
+from statfit.io.files import existing_file
 
 
 def _numbers(path: str | Path, what: str) -> list[list[str]]:
     """The non-empty rows of a whitespace- or comma-separated text file, ``#`` starting a comment."""
-    path = Path(path)
-    if not path.is_file():
-        raise StatfitError(f"landmark file not found: {path}")
+    path = existing_file(path, "landmark file")
     try:
         text = path.read_text().replace(",", " ")
     except (UnicodeDecodeError, OSError):

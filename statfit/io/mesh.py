@@ -11,8 +11,12 @@ import numpy as np
 import trimesh
 
 from statfit.errors import StatfitError
+from statfit.io.files import existing_file
 
 MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off")
+# The largest mesh or point-cloud file read, and how much of a file its header may take.
+MAX_FILE_BYTES = 4 << 30
+HEADER_BYTES = 1 << 16
 
 
 def _load(source: str | Path):
@@ -22,23 +26,56 @@ def _load(source: str | Path):
             data = sys.stdin.buffer.read()
             if not data:
                 raise StatfitError("no data on standard input (expected a PLY scan)")
-            return trimesh.load(io.BytesIO(data), file_type="ply", process=False)
-        path = Path(source)
-        if not path.exists():
-            raise StatfitError(f"file not found: {path}")
-        if not path.is_file():
-            raise StatfitError(f"not a file: {path}")
-        if path.stat().st_size == 0:
+            _check_ply_header(data[:HEADER_BYTES], len(data), "standard input")
+            return _counted(trimesh.load(io.BytesIO(data), file_type="ply", process=False), data[:HEADER_BYTES],
+                            "standard input")
+        path = existing_file(source, "file")
+        size = path.stat().st_size
+        if size == 0:
             raise StatfitError(f"{path} is empty")
         if path.suffix.lower() not in MESH_SUFFIXES:
             raise StatfitError(f"{path}: unsupported format {path.suffix!r}; use one of {', '.join(MESH_SUFFIXES)}")
-        return trimesh.load(path, process=False, maintain_order=True)
+        if size > MAX_FILE_BYTES:
+            raise StatfitError(f"{path} is {size / 2**30:.1f} GiB; statfit reads meshes up to "
+                               f"{MAX_FILE_BYTES / 2**30:.0f} GiB")
+        with open(path, "rb") as handle:
+            head = handle.read(HEADER_BYTES)
+        if path.suffix.lower() == ".ply":
+            _check_ply_header(head, size, str(path))
+        geometry = trimesh.load(path, process=False, maintain_order=True)
+        return _counted(geometry, head, str(path)) if path.suffix.lower() == ".ply" else geometry
     except StatfitError:
         raise
     except PermissionError:
         raise StatfitError(f"cannot read {source}: permission denied") from None
     except Exception as exc:  # trimesh raises many kinds on corrupt files
         raise StatfitError(f"cannot read {source}: not a valid mesh or point cloud ({type(exc).__name__}: {exc})") from None
+
+
+def _ply_vertex_count(head: bytes) -> int | None:
+    """The vertex count a PLY header declares (None if the header has none)."""
+    text = head.split(b"end_header", 1)[0].decode("ascii", errors="replace")
+    for line in text.splitlines():
+        words = line.split()
+        if len(words) == 3 and words[:2] == ["element", "vertex"] and words[2].isdigit():
+            return int(words[2])
+    return None
+
+
+def _check_ply_header(head: bytes, size: int, source: str) -> None:
+    """Refuse a PLY declaring more vertices than its bytes could hold (≥ 3 bytes each as text)."""
+    declared = _ply_vertex_count(head)
+    if declared is not None and declared * 3 > size:
+        raise StatfitError(f"{source} declares {declared:,} vertices in a file of {size:,} bytes: truncated or damaged")
+
+
+def _counted(geometry, head: bytes, source: str):
+    """``geometry`` loaded from a PLY, refused if it holds other than the declared vertex count."""
+    declared = _ply_vertex_count(head)
+    held = len(getattr(geometry, "vertices", ()))
+    if declared is not None and held != declared:
+        raise StatfitError(f"{source} declares {declared:,} vertices but holds {held:,}: truncated or damaged")
+    return geometry
 
 
 def read_points(source: str | Path) -> np.ndarray:
@@ -51,7 +88,11 @@ def read_points(source: str | Path) -> np.ndarray:
         vertices = np.asarray(getattr(geometry, "vertices", np.zeros((0, 3))))
     if len(vertices) == 0:
         raise StatfitError(f"{source} contains no points")
-    return np.asarray(vertices, dtype=np.float64)
+    vertices = np.asarray(vertices, dtype=np.float64)
+    bad = ~np.isfinite(vertices).all(axis=1)
+    if bad.any():
+        raise StatfitError(f"{source} has NaN or infinite coordinates ({int(bad.sum())} points)")
+    return vertices
 
 
 def read_mesh(source: str | Path) -> tuple[np.ndarray, np.ndarray]:
@@ -77,6 +118,13 @@ def points_bytes(points: np.ndarray) -> bytes:
     return trimesh.PointCloud(points).export(file_type="ply")
 
 
+def _umask() -> int:
+    """The process's umask (read by setting it and putting it back)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def write_atomic(target: str | Path, data: bytes) -> None:
     """Write ``data`` to ``target`` via a temporary file in the same folder and a rename, so a
     reader never sees a half-written file; ``-`` writes to stdout."""
@@ -89,12 +137,13 @@ def write_atomic(target: str | Path, data: bytes) -> None:
     if not folder.is_dir():
         raise StatfitError(f"output folder does not exist: {folder}")
     try:
-        fd, tmp = tempfile.mkstemp(dir=folder, prefix=f".{path.name}.", suffix=".tmp")
+        fd, tmp = tempfile.mkstemp(dir=folder, prefix=".statfit-", suffix=".tmp")  # short: any legal name fits
     except OSError as exc:
         raise StatfitError(f"cannot write to {folder}: {exc.strerror}") from None
     try:
         with os.fdopen(fd, "wb") as handle:
             handle.write(data)
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; a plain write would honour the umask
         os.replace(tmp, path)
     except OSError as exc:
         Path(tmp).unlink(missing_ok=True)
@@ -107,13 +156,25 @@ def mesh_format(target: str | Path) -> str:
 
 
 def check_writable(target: str | Path) -> None:
-    """Fail early, before any work, if ``target``'s folder cannot take a new file."""
+    """Fail early, before any work, if ``target`` cannot be written: its folder is missing or not
+    writable, it is a folder, or its name is too long — tried by creating (and removing) a file
+    beside it, which also catches folders that refuse new files (/proc, a read-only mount)."""
     if str(target) == "-":
         return
-    folder = Path(target).parent if str(Path(target).parent) else Path(".")
-    if not folder.is_dir():
-        raise StatfitError(f"output folder does not exist: {folder}")
-    if not os.access(folder, os.W_OK | os.X_OK):
-        raise StatfitError(f"output folder is not writable: {folder}")
-    if Path(target).is_dir():
-        raise StatfitError(f"output path is a folder: {target}")
+    path = Path(target)
+    folder = path.parent if str(path.parent) else Path(".")
+    try:
+        if not folder.is_dir():
+            raise StatfitError(f"output folder does not exist: {folder}")
+        if path.is_dir():
+            raise StatfitError(f"output path is a folder: {target}")
+        name_limit = os.pathconf(folder, "PC_NAME_MAX")
+        if len(os.fsencode(path.name)) > name_limit:
+            raise StatfitError(f"output name is longer than the {name_limit} bytes this file system allows: "
+                               f"{path.name[:40]}…")
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".statfit-", suffix=".tmp"):
+            pass
+    except StatfitError:
+        raise
+    except OSError as exc:
+        raise StatfitError(f"cannot write {str(path)[:200]}: {exc.strerror}") from None

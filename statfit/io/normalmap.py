@@ -13,6 +13,7 @@ import numpy as np
 
 from statfit.errors import StatfitError
 from statfit.io.exr import read_exr, write_exr
+from statfit.io.files import existing_file
 from statfit.io.mesh import write_atomic
 from statfit.camera import Camera
 from statfit.normal_map import NormalMap
@@ -92,9 +93,7 @@ def write_normal_map(path: str | Path, normals: np.ndarray, mask: np.ndarray, ca
 
 def read_camera(path: str | Path) -> Camera:
     """A camera from its JSON description (docs/formats.md)."""
-    path = Path(path)
-    if not path.is_file():
-        raise StatfitError(f"camera file not found: {path}")
+    path = existing_file(path, "camera file")
     try:
         data = json.loads(path.read_text())
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
