@@ -51,7 +51,7 @@ ModelOption = typer.Option(None, "--model", "-m", help="Model npz (v_template, f
 KOption = typer.Option(None, "--k", help="Use only the first K modes of the model.", show_default=False)
 MethodOption = typer.Option("default", help="default (the measured best pipeline) or one method: "
                             + "; ".join(f"{name}: {method.summary}" for name, method in METHODS.items())
-                            + ". register's pca is a closed-form Gauss-Newton fit (~15x sooner than default).")
+                            + ". register's pca is a closed-form Gauss-Newton fit (~25x sooner than default).")
 PresetOption = typer.Option("tuned", help="tuned (our measured defaults) or paper (the paper's settings, exactly).")
 DeviceOption = typer.Option("cpu", help="auto, cpu or cuda.")
 ThreadsOption = typer.Option(None, help="CPU threads for the fit. Default: 1 for head-sized models (a second "

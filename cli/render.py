@@ -6,11 +6,10 @@ from pathlib import Path
 import typer
 
 from statfit.errors import StatfitError
-from statfit.inverse_render import camera_space_normals, reconstruct
+from statfit.inverse_render import camera_space_normals, reconstruct, render_stages
 from statfit.io.image import read_mask
 from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_mesh
 from statfit.io.normalmap import apply_mask, camera_for_map, read_normal_map
-from statfit.methods import resolve
 from statfit.objectives.normals import SILHOUETTE_WEIGHT
 from statfit.register import resolve_device
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
@@ -71,7 +70,7 @@ def render(
         statfit render normals.exr --camera camera.json --model model.npz --out fit.ply --preview fit.png
     """
     overrides = setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain)
-    stages = resolve(method, preset, job="render", **overrides)
+    stages = render_stages(method, preset, region, **overrides)
     torch_device = resolve_device(device)
     out = out or Path(f"{normal_map_path.stem}_fit.ply")
     for target in (out, log, preview):

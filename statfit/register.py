@@ -23,6 +23,8 @@ from statfit.threads import choose_threads, intra_op_threads
 ALIGNMENTS = ("none", "rigid", "similarity")
 # A scan whose extent differs from the model's by more than this factor is taken to be in other units.
 UNIT_MISMATCH_FACTOR = 8.0
+# No scan in any length unit (metres to micrometres) has coordinates beyond this.
+IMPLAUSIBLE_COORDINATE = 1e9
 # Median scan-to-template distance (in model RMS radii) above which the scan is "far" from the model.
 FAR_DISTANCE = 0.25
 
@@ -38,6 +40,10 @@ def check_scan(points: np.ndarray, source: str = "scan") -> np.ndarray:
         raise StatfitError(f"{source} has NaN or infinite coordinates ({int((~np.isfinite(points)).any(axis=1).sum())} points)")
     if len(points) < 10:
         raise StatfitError(f"{source} has only {len(points)} points; need at least 10")
+    largest = float(np.abs(points).max())
+    if largest > IMPLAUSIBLE_COORDINATE:
+        raise StatfitError(f"{source} has coordinates as large as {largest:.3g}: not a scan in any length unit "
+                           "(a damaged file?)")
     return points
 
 

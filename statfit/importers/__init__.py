@@ -9,6 +9,7 @@ import numpy as np
 
 from statfit.errors import StatfitError
 from statfit.io.files import existing_file
+from statfit.io.npz import check_npz_sizes
 from statfit.importers import smpl
 from statfit.importers.bfm import HDF5_SIGNATURE, import_bfm
 from statfit.importers.ict import NEUTRAL, import_ict
@@ -85,6 +86,7 @@ def _read_npz(path: Path, keys: tuple[str, ...] = ()) -> tuple[set[str], dict[st
     """An npz's key names and its arrays ``keys`` (other members, e.g. the pickled dicts in SMPL-X
     files, are never unpickled)."""
     try:
+        check_npz_sizes(path, "model")
         with np.load(path, allow_pickle=False) as data:
             return set(data.files), {key: data[key] for key in keys if key in data.files}
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:

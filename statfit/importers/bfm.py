@@ -14,15 +14,20 @@ import h5py
 import numpy as np
 
 from statfit.errors import StatfitError
+from statfit.io.npz import MAX_BYTES
 from statfit.model import StatModel, model_from_arrays
 
 HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 
 
 def _dataset(handle, key: str, path: Path) -> np.ndarray:
-    if not isinstance(handle.get(key), h5py.Dataset):
+    dataset = handle.get(key)
+    if not isinstance(dataset, h5py.Dataset):
         raise StatfitError(f"{path}: not a Basel Face Model file (no {key} dataset in the HDF5 file)")
-    return np.asarray(handle[key][()])
+    if dataset.size * dataset.dtype.itemsize > MAX_BYTES:  # from the metadata, before reading
+        raise StatfitError(f"{path}: {key} declares {dataset.shape}, more than the {MAX_BYTES / 2**30:.0f} GiB "
+                           "statfit reads")
+    return np.asarray(dataset[()])
 
 
 def _directions(handle, group: str, n: int, k: int | None, path: Path) -> np.ndarray:

@@ -7,6 +7,7 @@ import numpy as np
 
 from statfit.errors import StatfitError
 from statfit.io.files import existing_file
+from statfit.io.npz import check_npz_sizes
 from statfit.importers.safe_pickle import load_pickle
 
 
@@ -16,6 +17,7 @@ def read_masks(path: str | Path) -> dict[str, np.ndarray]:
     path = existing_file(path, "mask file")
     if path.suffix.lower() == ".npz":
         try:
+            check_npz_sizes(path, "mask file")
             with np.load(path, allow_pickle=False) as data:
                 masks = {key: data[key] for key in data.files}
         except (OSError, ValueError, EOFError) as exc:
