@@ -14,7 +14,8 @@ from statfit.errors import DivergenceError
 
 class Objective(Protocol):
     """A data term: ``prepare`` does non-differentiable work (correspondences, visibility), ``reset``
-    drops what ``prepare`` keeps (a new stage starts afresh), ``__call__`` returns named loss terms (scalars) differentiable w.r.t. ``vertices``."""
+    drops what ``prepare`` keeps (a new stage starts afresh), ``__call__`` returns named loss terms
+    (scalars) differentiable w.r.t. ``vertices``."""
 
     def prepare(self, vertices: torch.Tensor, iteration: int) -> None: ...
 

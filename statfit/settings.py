@@ -58,6 +58,9 @@ class Settings:
             raise StatfitError(f"unknown optimizer {self.optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
         if self.optimizer == "adam":
             _check_number("lr (the step size)", self.lr, positive=True)
+        elif self.method != "pca":
+            raise StatfitError(f"the Gauss–Newton optimizer fits the model's coefficients: method 'pca', not "
+                               f"{self.method!r}")
         for name, high in LIMITS.items():
             _check_number(name, getattr(self, name), high=high, positive=name == "power")
         if not math.isfinite(self.beta_effective):

@@ -142,3 +142,8 @@ def test_every_command_refuses_bad_settings_the_same_way(command, option, tmp_pa
     setting = option[0].lstrip("-").replace("lr", "lr (the step size)")
     assert exit_info.value.code == 2 and err.count("\n") == 1 and err.startswith(f"statfit: error: {setting}"), err
     assert not any(tmp_path.iterdir())
+
+
+def test_gauss_newton_is_for_the_coefficients_only():
+    with pytest.raises(StatfitError, match="Gauss"):
+        Settings("statistical", 10, 0.0, optimizer="gauss-newton")
