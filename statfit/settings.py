@@ -10,6 +10,7 @@ import scipy.sparse as sp
 import torch
 
 from statfit.errors import StatfitError
+from statfit.filters import beta_with_power
 from statfit.frame import Frame
 from statfit.model import StatModel
 from statfit.solvers import SOLVERS
@@ -63,22 +64,16 @@ class Settings:
                                f"{self.method!r}")
         for name, high in LIMITS.items():
             _check_number(name, getattr(self, name), high=high, positive=name == "power")
-        if not math.isfinite(self.beta_effective):
-            raise StatfitError(f"(1 + beta)^power overflows: beta {self.beta}, power {self.power}")
+        try:
+            beta_with_power(self.beta, self.power)  # the filters' β'
+        except OverflowError:
+            raise StatfitError(f"(1 + beta)^power overflows: beta {self.beta}, power {self.power}") from None
         if self.laplacian not in LAPLACIANS:
             raise StatfitError(f"unknown Laplacian {self.laplacian!r}; choose one of {', '.join(LAPLACIANS)}")
         if self.solver not in SOLVERS:
             raise StatfitError(f"unknown solver {self.solver!r}; choose one of {', '.join(SOLVERS)}")
         if len(self.adam_betas) != 2 or not all(0 <= b < 1 for b in self.adam_betas):
             raise StatfitError(f"adam_betas must be two numbers in [0, 1), got {self.adam_betas}")
-
-    @property
-    def beta_effective(self) -> float:
-        """β' = (1 + β)^p − 1, the filter's β once the power is applied (inf where it overflows)."""
-        try:
-            return (1.0 + self.beta) ** self.power - 1.0
-        except OverflowError:
-            return math.inf
 
     def describe(self) -> dict[str, Any]:
         """The settings as a plain dict (for logs)."""
