@@ -7,7 +7,8 @@ Parts: filter_scaling (filter step time vs mesh size), convergence (error vs ite
 method), peers (largesteps, trimesh's non-rigid ICP, pycpd on the same scans), end_to_end (the two
 CLI jobs per method, with peak memory), inpainting (texture inpainting per-step time at 1024²),
 register_speed (default / fast / pca seconds on 1, 2 and the chosen thread count, quiet and with a
-busy core, beside their errors on the nine study cases).
+busy core, beside their errors on the nine study cases), batch (the batch engine's throughput against
+one-by-one registration, its overhead per fit, and the manifest at 10,000 inputs with kills).
 ``--only`` with parts of the list rewrites only those sections of an existing report (each marked
 as regenerated alone). ``--quick`` runs small sizes and few iterations (a few minutes on 2 cores): it checks that everything
 runs; its numbers are not the ones to quote. Raw numbers go to benchmarks/results/<part>[_quick].json.
@@ -25,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import ICT_MODEL, ROOT, Section, machine, save_json  # noqa: E402
 
-PARTS = ("filter_scaling", "convergence", "peers", "end_to_end", "inpainting", "register_speed")
+PARTS = ("filter_scaling", "convergence", "peers", "end_to_end", "inpainting", "register_speed", "batch")
 NEEDS_ICT = ("convergence", "peers", "end_to_end", "register_speed")
 
 

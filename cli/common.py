@@ -6,7 +6,6 @@ import sys
 import time
 import warnings
 from contextlib import contextmanager
-from pathlib import Path
 from typing import Iterator
 
 import typer
@@ -14,9 +13,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from statfit.errors import StatfitError
-from statfit.importers.cache import open_any_model
 from statfit.methods import METHODS
-from statfit.model import StatModel, default_model_path, load_model
 
 stderr = Console(stderr=True)
 
@@ -82,12 +79,6 @@ def setting_overrides(iterations: int | None, lr: float | None, beta: float | No
         raise StatfitError(f"unknown Laplacian {laplacian!r}; choose uniform or cotangent")
     return dict(iterations=iterations, lr=lr, beta=beta, power=power, lam=lam, laplacian=laplacian,
                 mode_gain=mode_gain)
-
-
-def open_model(path: Path | None, k: int | None = None) -> StatModel:
-    """The model at ``path`` in any format (imported and cached) or the embedded default, truncated
-    to ``k`` modes."""
-    return open_any_model(path, k=k) if path is not None else load_model(default_model_path(), k)
 
 
 # Without a terminal, a progress line at most this often (seconds).

@@ -10,7 +10,9 @@ from statfit.methods import METHODS, resolve
 from statfit.metrics import evaluate, observed_vertices
 from statfit.register import register as fit_scan
 from statfit.synth import sample_target, scan_from_view
-from statfit_cli.common import open_model, progress_bar, seed_option, within
+from statfit.importers.cache import open_model
+from statfit_cli.common import progress_bar, seed_option, within
+
 
 DEMO_METHODS = ("default", *(name for name, method in METHODS.items() if "register" in method.tuned))
 

@@ -9,7 +9,7 @@ import typer
 from statfit import __version__
 from statfit.errors import StatfitError
 from statfit.threads import flush_denormals_everywhere
-from statfit_cli import demo, evaluate, inpaint, model, register, render, synth, texture
+from statfit_cli import batch, demo, evaluate, inpaint, model, register, render, synth, texture
 
 app = typer.Typer(
     help="Fit a template mesh to limited observations (a partial scan, or a normal map) with statistical gradient filtering.\n\n"
@@ -34,6 +34,7 @@ app.command("demo")(demo.demo)
 app.command("eval")(evaluate.evaluate)
 app.command("inpaint")(inpaint.inpaint)
 app.add_typer(synth.app, name="synth")
+app.add_typer(batch.app, name="batch")
 model.app.command("build-texture")(texture.build_texture)
 app.add_typer(model.app, name="model")
 

@@ -14,7 +14,9 @@ from statfit.errors import StatfitError
 from statfit.importers import import_model
 from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, write_atomic
 from statfit.model import StatModel, save_model, units_guess
-from statfit_cli.common import SeedOption, open_model, printed_warnings, seed_option, within
+from statfit.importers.cache import open_model
+from statfit_cli.common import SeedOption, printed_warnings, seed_option, within
+
 
 app = typer.Typer(help="Import, build, inspect and sample statistical models.", no_args_is_help=True)
 

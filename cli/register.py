@@ -1,4 +1,4 @@
-"""``statfit register``: fit the model's template to one or more partial scans."""
+"""``statfit register``: fit the model's template to one partial scan (many: ``statfit batch``)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -11,43 +11,24 @@ from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_points
 from statfit.io.landmarks import read_landmarks
 from statfit.methods import resolve
 from statfit.register import register as fit_scan, resolve_device
+from statfit.importers.cache import open_model
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
                                 LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
-                                PowerOption, PresetOption, QuietOption, SeedOption, ThreadsOption, open_model,
-                                setting_overrides, within)
+                                PowerOption, PresetOption, QuietOption, SeedOption, ThreadsOption, setting_overrides,
+                                within)
 from statfit_cli.runner import finish, fit_run
 
 
-def _targets(scans: list[str], out: str | None, out_dir: Path | None, log: Path | None
-             ) -> list[tuple[str, str, Path | None]]:
-    """(scan, mesh output, log output) for every scan."""
-    if out_dir is not None:
-        if out is not None or log is not None:
-            raise StatfitError("use either --out/--log (one scan) or --out-dir (many scans), not both")
-        if "-" in scans:
-            raise StatfitError("--out-dir cannot be used with a scan read from standard input")
-        stems = [Path(s).stem for s in scans]
-        if len(set(stems)) != len(stems):
-            raise StatfitError("two scans share a file name; their outputs would collide in --out-dir")
-        return [(s, str(out_dir / f"{stem}.ply"), out_dir / f"{stem}.jsonl") for s, stem in zip(scans, stems)]
-    if len(scans) > 1:
-        raise StatfitError("several scans need --out-dir")
-    scan = scans[0]
-    default = "-" if scan == "-" else f"{Path(scan).stem}_fit.ply"
-    return [(scan, out or default, log)]
-
-
 def register(
-    scans: list[str] = typer.Argument(..., help="Scan file(s): any point cloud or mesh (PLY, OBJ, STL, OFF); "
-                                      "'-' reads a PLY from standard input.", show_default=False),
+    scans: list[str] = typer.Argument(..., metavar="SCAN", help="Scan file: any point cloud or mesh (PLY, OBJ, STL, "
+                                      "OFF); '-' reads a PLY from standard input. For many scans: `statfit batch "
+                                      "register`.", show_default=False),
     model_path: Path = ModelOption,
     k: int = KOption,
     method: str = MethodOption,
     preset: str = PresetOption,
     out: str = typer.Option(None, "--out", "-o", help="Fitted mesh (.ply or .obj; '-' for PLY on stdout). "
                             "Default: <scan>_fit.ply here.", show_default=False),
-    out_dir: Path = typer.Option(None, help="Folder for many scans: <scan>.ply and <scan>.jsonl each.",
-                                 show_default=False),
     log: Path = LogOption,
     align: str = typer.Option("none", help="Pre-alignment: none, rigid or similarity (ICP; similarity also "
                               "estimates scale, e.g. for a scan in other units)."),
@@ -86,36 +67,31 @@ def register(
     overrides = setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain)
     stages = resolve(method, preset, **overrides)
     torch_device = resolve_device(device)
-    targets = _targets(scans, out, out_dir, log)
-    if json_out and any(target == "-" for _, target, _ in targets):
+    if len(scans) > 1:
+        raise StatfitError(f"{len(scans)} scans given; register fits one — for many, `statfit batch register SCANS "
+                           "--out-dir DIR` (parallel, resumable, one failure does not stop the rest)")
+    scan = scans[0]
+    target = out or ("-" if scan == "-" else f"{Path(scan).stem}_fit.ply")
+    if json_out and target == "-":
         raise StatfitError("--json and --out - both want standard output; choose one")
-    if out_dir is not None and not out_dir.is_dir():
-        raise StatfitError(f"output folder does not exist: {out_dir}")
-    for _, target, log_path in targets:
-        check_writable(target)
-        if log_path is not None:
-            check_writable(log_path)
-    for scan in scans:
-        if scan != "-":
-            existing_file(scan, "scan")
-    if landmarks is not None and len(targets) > 1:
-        raise StatfitError("--landmarks belong to one scan; fit several scans one by one")
+    for path in (target, log):
+        if path is not None:
+            check_writable(path)
+    if scan != "-":
+        existing_file(scan, "scan")
     model = open_model(model_path, k)
     scan_landmarks = read_landmarks(landmarks) if landmarks is not None else None
-    total = sum(s.iterations for s in stages)
-    scans_points = {scan: read_points(scan) for scan, _, _ in targets}  # every scan checked before the first fit
-    for scan, target, log_path in targets:
-        points = scans_points[scan]
-        header = dict(method=method, preset=preset, stages=[s.describe() for s in stages], model=model.source,
-                      modes=model.num_modes, input=scan, points=len(points), align=align, device=str(torch_device),
-                      threads=threads, seed=seed, refresh=refresh, trim=trim, region=region,
-                      landmarks=str(landmarks) if landmarks else None)
-        label = Path(scan).name if scan != "-" else "stdin"
-        with fit_run("register", log_path, label, total, quiet, **header) as run:
-            result = fit_scan(model, points, stages=stages, align=align, device=str(torch_device),
-                              refresh_every=refresh, trim=trim, seed=seed, on_record=run.on_record,
-                              region=region, landmarks=scan_landmarks, threads=threads)
-        summary = {"input": scan, "output": target, "method": method, "iterations": result.iterations,
-                   "final_loss": result.loss, "seconds": result.seconds,
-                   "stage_seconds": result.stage_seconds, "model_to_scan": result.transform.as_matrix().tolist()}
-        finish(run, summary, {target: mesh_bytes(result.vertices, model.faces, mesh_format(target))}, json_out)
+    points = read_points(scan)
+    header = dict(method=method, preset=preset, stages=[s.describe() for s in stages], model=model.source,
+                  modes=model.num_modes, input=scan, points=len(points), align=align, device=str(torch_device),
+                  threads=threads, seed=seed, refresh=refresh, trim=trim, region=region,
+                  landmarks=str(landmarks) if landmarks else None)
+    label = Path(scan).name if scan != "-" else "stdin"
+    with fit_run("register", log, label, sum(s.iterations for s in stages), quiet, **header) as run:
+        result = fit_scan(model, points, stages=stages, align=align, device=str(torch_device),
+                          refresh_every=refresh, trim=trim, seed=seed, on_record=run.on_record,
+                          region=region, landmarks=scan_landmarks, threads=threads)
+    summary = {"input": scan, "output": target, "method": method, "iterations": result.iterations,
+               "final_loss": result.loss, "seconds": result.seconds,
+               "stage_seconds": result.stage_seconds, "model_to_scan": result.transform.as_matrix().tolist()}
+    finish(run, summary, {target: mesh_bytes(result.vertices, model.faces, mesh_format(target))}, json_out)

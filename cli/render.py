@@ -12,10 +12,11 @@ from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_mesh
 from statfit.io.normalmap import apply_mask, camera_for_map, read_normal_map
 from statfit.objectives.normals import SILHOUETTE_WEIGHT
 from statfit.register import resolve_device
+from statfit.importers.cache import open_model
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
                                 LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
-                                PowerOption, PresetOption, QuietOption, SeedOption, ThreadsOption, open_model,
-                                setting_overrides, within)
+                                PowerOption, PresetOption, QuietOption, SeedOption, ThreadsOption, setting_overrides,
+                                within)
 from statfit_cli.runner import finish, fit_run
 
 

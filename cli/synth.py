@@ -10,7 +10,9 @@ from statfit.errors import StatfitError
 from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, points_bytes, write_atomic
 from statfit.io.normalmap import write_camera, write_normal_map
 from statfit.synth import camera_for_view, load_delta, render_target, sample_target, scan_from_view
-from statfit_cli.common import ModelOption, open_model, seed_option, within
+from statfit.importers.cache import open_model
+from statfit_cli.common import ModelOption, seed_option, within
+
 
 app = typer.Typer(help="Make synthetic test data from a model, with its ground truth.", no_args_is_help=True)
 

@@ -24,6 +24,7 @@ from statfit.errors import StatfitError
 # Floats a fit streams per iteration (model basis: 3N·K) above which several threads pay off.
 PARALLEL_WORK = 1 << 23
 MAX_THREADS = 256
+_limit: int | None = None  # set by limit_threads: a batch worker's share of the machine
 
 
 def available_cores() -> int:
@@ -41,7 +42,16 @@ def choose_threads(work: int, threads: int | None = None) -> int:
         if not 1 <= threads <= MAX_THREADS:
             raise StatfitError(f"--threads must be between 1 and {MAX_THREADS}, got {threads}")
         return threads
-    return 1 if work < PARALLEL_WORK else available_cores()
+    return 1 if work < PARALLEL_WORK else min(available_cores(), _limit or MAX_THREADS)
+
+
+def limit_threads(count: int | None) -> None:
+    """Cap the threads :func:`choose_threads` picks in this process (``None``: no cap) — a batch
+    worker's share of the cores, so W workers never run more than the machine's threads."""
+    global _limit
+    if count is not None and count < 1:
+        raise StatfitError(f"thread limit must be at least 1, got {count}")
+    _limit = count
 
 
 @contextmanager

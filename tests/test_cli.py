@@ -61,14 +61,10 @@ def test_same_seed_same_mesh_and_obj_output(scan_files, tmp_path, capsys):
     np.testing.assert_array_equal(a.faces, c.faces)
 
 
-def test_many_scans_into_a_folder(scan_files, tmp_path, capsys):
+def test_several_scans_are_sent_to_batch(scan_files, tmp_path, capsys):
     scan, _ = scan_files
-    other = tmp_path / "other.ply"
-    other.write_bytes(scan.read_bytes())
-    out_dir = tmp_path / "fits"
-    out_dir.mkdir()
-    assert run(["register", str(scan), str(other), "--out-dir", str(out_dir), *FAST], capsys)[0] == 0
-    assert sorted(p.name for p in out_dir.iterdir()) == ["other.jsonl", "other.ply", "scan.jsonl", "scan.ply"]
+    code, _, err = run(["register", str(scan), str(scan), "--out", str(tmp_path / "x.ply"), *FAST], capsys)
+    assert code == 2 and "statfit batch register" in err and not (tmp_path / "x.ply").exists()
 
 
 def test_stdin_to_stdout(scan_files, tmp_path):

@@ -18,7 +18,7 @@ PREFIXES = {
     "statfit.model": "model", "statfit.pca": "model", "statfit.build": "model", "statfit.importers": "model",
     "statfit.texture.model": "model", "statfit.texture.resample": "model",
     "statfit.register": "jobs", "statfit.inverse_render": "jobs", "statfit.synth": "jobs", "statfit.preview": "jobs",
-    "statfit.texture.inpaint": "jobs", "statfit.texture.preview": "jobs",
+    "statfit.texture.inpaint": "jobs", "statfit.texture.preview": "jobs", "statfit.batch": "jobs",
     "statfit_cli": "cli",
 }
 

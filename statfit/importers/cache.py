@@ -9,7 +9,7 @@ from pathlib import Path
 
 from statfit.errors import StatfitError
 from statfit.importers import import_model, model_format
-from statfit.model import StatModel, load_model, save_model
+from statfit.model import StatModel, default_model_path, load_model, save_model
 
 
 def cache_dir() -> Path:
@@ -46,3 +46,9 @@ def open_any_model(path: str | Path, *, k: int | None = None, folder: Path | Non
         except (OSError, StatfitError):
             pass
     return model.truncated(k) if k is not None else model
+
+
+def open_model(path: str | Path | None, k: int | None = None) -> StatModel:
+    """The model at ``path`` in any format (imported once and cached), or the embedded default
+    when ``path`` is None; its first ``k`` modes."""
+    return open_any_model(path, k=k) if path is not None else load_model(default_model_path(), k)

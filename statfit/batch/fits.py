@@ -1,0 +1,108 @@
+"""One fit as a job a worker process runs: the settings travel once (a small picklable
+:class:`FitJob`), the worker opens the model once and keeps it, and each input comes back as the
+output's bytes or a one-line error — never an exception that could stop the batch."""
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+from statfit import __version__
+from statfit.errors import StatfitError
+from statfit.importers.cache import open_model
+from statfit.inverse_render import reconstruct
+from statfit.io.mesh import mesh_bytes, read_points
+from statfit.io.normalmap import camera_for_map, read_normal_map
+from statfit.model import StatModel
+from statfit.register import register
+from statfit.settings import Settings
+from statfit.threads import flush_denormals_everywhere, limit_threads
+
+COMMANDS = ("register", "render")
+
+
+@dataclass(frozen=True)
+class FitJob:
+    """What every input of a batch is fitted with.
+
+    ``command``: register (inputs are scans) or render (inputs are normal maps); ``model``: the
+    model file (None: the embedded one) and ``k`` modes; ``stages``: the resolved pipeline;
+    ``options``: the command's keyword arguments (align, trim, seed, camera, ...); ``threads``:
+    per fit (None: chosen from the problem, at most ``max_threads``); ``model_digest``: the model
+    file's content hash, so a changed model redoes the batch."""
+    command: str
+    model: str | None
+    k: int | None
+    stages: tuple[Settings, ...]
+    options: dict[str, Any] = field(default_factory=dict)
+    threads: int | None = None
+    max_threads: int | None = None
+    device: str = "cpu"
+    model_digest: str = ""
+
+    def settings(self) -> dict[str, Any]:
+        """Everything that decides an output, as plain JSON (the manifest's settings key)."""
+        return dict(command=self.command, model=self.model, model_digest=self.model_digest, k=self.k, stages=[s.describe() for s in self.stages],
+                    options=self.options, device=self.device, statfit=__version__)
+
+
+@dataclass
+class Outcome:
+    """One input's result: the output's bytes and the fit's summary, or a one-line ``error``."""
+    data: bytes | None
+    summary: dict[str, Any]
+    error: str | None
+    seconds: float
+
+
+@lru_cache(maxsize=2)
+def _model(path: str | None, k: int | None) -> StatModel:
+    return open_model(Path(path) if path else None, k)
+
+
+def prepare_worker(max_threads: int | None = None) -> None:
+    """Set up a worker process: subnormals flushed before any parallel kernel, threads capped."""
+    flush_denormals_everywhere()
+    limit_threads(max_threads)
+
+
+def _fit(job: FitJob, source: str, model: StatModel) -> tuple[bytes, dict[str, Any]]:
+    common = dict(stages=job.stages, device=job.device, threads=job.threads)
+    if job.command == "register":
+        options = dict(job.options)
+        result = register(model, read_points(source), **common, **options)
+        pose = {"model_to_scan": result.transform.as_matrix().tolist()}
+    elif job.command == "render":
+        options = dict(job.options)
+        camera_path = options.pop("camera", None)
+        normal_map = read_normal_map(source)
+        camera = camera_for_map(normal_map, camera_path, source)
+        result = reconstruct(model, normal_map, camera, **common, **options)
+        pose = {"model_to_world": result.transform.as_matrix().tolist()}
+    else:
+        raise StatfitError(f"unknown batch command {job.command!r}; choose one of {', '.join(COMMANDS)}")
+    summary = dict(iterations=result.iterations, final_loss=result.loss, fit_seconds=result.seconds, **pose)
+    return mesh_bytes(result.vertices, model.faces, "ply"), summary
+
+
+def run_job(job: FitJob, source: str) -> Outcome:
+    """Fit one input; every failure becomes the outcome's one-line error."""
+    started = time.perf_counter()
+    prepare_worker(job.max_threads)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            data, summary = _fit(job, source, _model(job.model, job.k))
+            error = None
+        except StatfitError as exc:
+            data, summary, error = None, {}, str(exc)
+        except MemoryError:
+            data, summary, error = None, {}, "out of memory"
+        except Exception as exc:  # a bug or an unforeseen input: recorded, the batch goes on
+            data, summary, error = None, {}, f"{type(exc).__name__}: {exc}".splitlines()[0]
+    if caught:
+        summary["warnings"] = [str(w.message) for w in caught]
+    return Outcome(data, summary, error, time.perf_counter() - started)

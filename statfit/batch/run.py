@@ -1,0 +1,160 @@
+"""The batch loop: skip what is done, run the rest on an engine, and record each input as it
+finishes — output first (atomically), then its manifest line.
+
+Failures stay with their input: a bad input is a ``failed`` line with the fit's one-line error; a
+fit running past ``timeout`` is failed and its worker replaced; when a worker dies, the fits it may
+have taken down are rerun one at a time, so only the one that kills its worker alone is failed.
+"""
+from __future__ import annotations
+
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Callable
+
+from statfit.batch.engines import Engine, WorkerLost
+from statfit.batch.fits import FitJob, Outcome, run_job
+from statfit.batch.manifest import MANIFEST_NAME, Manifest, is_current, latest_fits, read_rows, settings_key
+from statfit.batch.plan import Item, file_digest
+from statfit.errors import StatfitError
+from statfit.io.mesh import write_atomic
+
+POLL_SECONDS = 0.5
+WORKER_DIED = "the worker died while fitting this input (a crash, or out of memory)"
+
+
+@dataclass
+class BatchReport:
+    """What a run did: inputs fitted, failed (with reasons) and skipped as already done."""
+    done: int = 0
+    skipped: int = 0
+    failed: list[tuple[str, str]] = field(default_factory=list)
+    seconds: list[float] = field(default_factory=list)
+    wall_seconds: float = 0.0
+
+
+def _now() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+class _Recorder:
+    """Writes each finished input's output and manifest line, and keeps the report."""
+
+    def __init__(self, manifest: Manifest, out_dir: Path, key: str, report: BatchReport,
+                 on_row: Callable[[dict[str, Any]], None] | None):
+        self.manifest, self.out_dir, self.key, self.report, self.on_row = manifest, out_dir, key, report, on_row
+        self.folders: set[Path] = set()  # output folders made so far
+
+    def record(self, item: Item, digest: str | None, outcome: Outcome) -> None:
+        row = dict(event="fit", input=item.identity, sha256=digest,
+                   output=str(item.output.relative_to(self.out_dir)), key=self.key, seconds=round(outcome.seconds, 3),
+                   finished=_now())
+        error = outcome.error
+        if error is None and outcome.data is not None:
+            try:
+                if item.output.parent not in self.folders:
+                    item.output.parent.mkdir(parents=True, exist_ok=True)
+                    self.folders.add(item.output.parent)
+                write_atomic(item.output, outcome.data)
+            except (OSError, StatfitError) as exc:
+                error = f"cannot write {item.output}: {getattr(exc, 'strerror', None) or exc}"
+        if error is None:
+            row.update(status="done", bytes=len(outcome.data), summary=outcome.summary)
+            self.report.done += 1
+            self.report.seconds.append(outcome.seconds)
+        else:
+            row.update(status="failed", error=error)
+            self.report.failed.append((str(item.source), error))
+        self.manifest.append(row)
+        if self.on_row is not None:
+            self.on_row(row)
+
+
+def plan_work(items: list[Item], out_dir: Path, key: str, force: bool
+              ) -> tuple[list[tuple[Item, str | None]], list[tuple[Item, str]], int]:
+    """(to fit with its digest, unreadable with the reason, number already done)."""
+    latest = latest_fits(read_rows(out_dir / MANIFEST_NAME))
+    todo, unreadable, skipped = [], [], 0
+    for item in items:
+        try:
+            digest = file_digest(item.source)
+        except OSError as exc:
+            unreadable.append((item, f"cannot read {item.source}: {exc.strerror}"))
+            continue
+        if not force and is_current(latest.get(item.identity), key, digest, out_dir):
+            skipped += 1
+        else:
+            todo.append((item, digest))
+    return todo, unreadable, skipped
+
+
+def run_batch(items: list[Item], job: FitJob, out_dir: Path, engine: Engine, *, force: bool = False,
+              timeout: float | None = None, work: Callable[[FitJob, str], Outcome] = run_job,
+              on_start: Callable[[int, int], None] | None = None,
+              on_row: Callable[[dict[str, Any]], None] | None = None) -> BatchReport:
+    """Fit every item not already done with ``job``'s settings (all with ``force``) on ``engine``,
+    recording each in ``out_dir``'s manifest. ``on_start(to_fit, skipped)`` is called once the plan
+    is known, ``on_row(row)`` after every manifest line. ``work(job, source)`` replaces the fit
+    (benchmarks of the bookkeeping). KeyboardInterrupt stops the engine and propagates; what was
+    recorded stays."""
+    started = time.perf_counter()
+    key = settings_key(job.settings())
+    report = BatchReport()
+    with Manifest(out_dir / MANIFEST_NAME) as manifest:
+        for stale in out_dir.rglob(".statfit-*.tmp"):  # a killed run's half-written output; ours alone (locked)
+            stale.unlink(missing_ok=True)
+        todo, unreadable, report.skipped = plan_work(items, out_dir, key, force)
+        manifest.append(dict(event="run", started=_now(), key=key, settings=job.settings(),
+                             inputs=[item.identity for item in items]))
+        if on_start is not None:
+            on_start(len(todo) + len(unreadable), report.skipped)
+        recorder = _Recorder(manifest, out_dir, key, report, on_row)
+        for item, reason in unreadable:
+            recorder.record(item, None, Outcome(None, {}, reason, 0.0))
+        _drive(todo, job, engine, work, timeout, recorder)
+    report.wall_seconds = time.perf_counter() - started
+    return report
+
+
+def _drive(todo: list[tuple[Item, str | None]], job: FitJob, engine: Engine, work: Callable,
+           timeout: float | None, recorder: _Recorder) -> None:
+    queue = deque(todo)
+    suspects: deque[tuple[Item, str | None]] = deque()  # in flight when a worker died: rerun alone
+    running: dict[Any, list] = {}  # future → [item, digest, alone, start]; submission order = start order
+    started: dict[Any, float] = {}  # the futures a worker has taken (the oldest ``engine.workers``), since when
+
+    def submit(entry: tuple[Item, str | None], alone: bool) -> None:
+        running[engine.submit(work, job, str(entry[0].source))] = [*entry, alone]
+
+    while queue or suspects or running:
+        if suspects and not running:
+            submit(suspects.popleft(), alone=True)
+        while queue and not suspects and len(running) < engine.capacity:
+            submit(queue.popleft(), alone=False)
+        for future in list(running)[:engine.workers]:
+            started.setdefault(future, time.monotonic())
+        for future in engine.wait(running, POLL_SECONDS):
+            item, digest, alone = running.pop(future)
+            started.pop(future, None)
+            try:
+                recorder.record(item, digest, engine.result(future))
+            except WorkerLost:
+                if alone:
+                    recorder.record(item, digest, Outcome(None, {}, WORKER_DIED, 0.0))
+                else:
+                    suspects.append((item, digest))
+        if timeout is not None:
+            now = time.monotonic()
+            hung = [f for f, start in started.items() if now - start > timeout]
+            if hung:
+                stopped = engine.replace(hung, list(running))
+                for future in hung:
+                    item, digest, _ = running.pop(future)
+                    recorder.record(item, digest, Outcome(None, {}, f"timed out after {timeout:g} s",
+                                                          now - started.pop(future)))
+                for future in reversed(stopped):  # stopped with the hung one's worker: rerun first, not blamed
+                    item, digest, _ = running.pop(future)
+                    started.pop(future, None)
+                    queue.appendleft((item, digest))

@@ -1,0 +1,20 @@
+"""Stand-ins for a fit, importable by spawned batch workers: copy the input, or misbehave by name."""
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+from statfit.batch.fits import FitJob, Outcome
+
+
+def copy_or_misbehave(job: FitJob, source: str) -> Outcome:
+    """``crash*`` kills its worker, ``hang*`` sleeps for an hour, ``bad*`` fails; others are copied."""
+    name = Path(source).stem
+    if name.startswith("crash"):
+        os._exit(3)
+    if name.startswith("hang"):
+        time.sleep(3600)
+    if name.startswith("bad"):
+        return Outcome(None, {}, f"{name} is bad", 0.0)
+    return Outcome(Path(source).read_bytes(), {"worker": os.getpid()}, None, 0.0)

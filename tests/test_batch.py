@@ -1,0 +1,215 @@
+"""Batches: outputs mirrored and refused on clashes, the manifest's skip rule, failures isolated
+(bad inputs, crashing and hanging workers), kill and resume, the Dask engine, and the same meshes
+as one-by-one ``statfit register``."""
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from batch_stubs import copy_or_misbehave
+from conftest import run_cli
+from statfit.batch.engines import LocalPool
+from statfit.batch.fits import FitJob
+from statfit.batch.manifest import MANIFEST_NAME, Manifest, batch_status, read_rows
+from statfit.batch.plan import expand_inputs, plan_outputs
+from statfit.batch.run import WORKER_DIED, run_batch
+from statfit.errors import StatfitError
+from statfit.io.mesh import points_bytes
+from statfit.methods import resolve
+from statfit.synth import sample_target, scan_from_view
+
+FAST = ["--iterations", "60"]
+
+
+@pytest.fixture(scope="module")
+def scans(tmp_path_factory, embedded_model) -> Path:
+    """12 small scans of the embedded model in two sub-folders, 2 of them corrupt."""
+    root = tmp_path_factory.mktemp("scans")
+    for index in range(10):
+        rng = np.random.default_rng(index)
+        target = sample_target(embedded_model, rng)
+        points = scan_from_view(target, embedded_model.faces, rng, num_points=1500)
+        folder = root / ("left" if index % 2 else "right")
+        folder.mkdir(exist_ok=True)
+        (folder / f"scan{index:02d}.ply").write_bytes(points_bytes(points))
+    (root / "left" / "broken.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 5\nend_header\n1 2\n")
+    (root / "right" / "empty.ply").write_bytes(b"")
+    return root
+
+
+def fit_rows(out_dir: Path) -> list[dict]:
+    return [row for row in read_rows(out_dir / MANIFEST_NAME) if row["event"] == "fit"]
+
+
+def test_outputs_mirror_sub_folders_and_clashes_are_refused(tmp_path):
+    for name in ("a/x.ply", "a/y.obj", "b/x.ply"):
+        (tmp_path / name).parent.mkdir(exist_ok=True)
+        (tmp_path / name).write_text("")
+    items = plan_outputs(expand_inputs([str(tmp_path / "**" / "*.*")]), tmp_path / "out")
+    assert sorted(str(i.output.relative_to(tmp_path / "out")) for i in items) == ["a/x.ply", "a/y.ply", "b/x.ply"]
+    (tmp_path / "a" / "x.obj").write_text("")
+    with pytest.raises(StatfitError, match="would both be written"):
+        plan_outputs(expand_inputs([str(tmp_path / "a" / "*")]), tmp_path / "out")
+    with pytest.raises(StatfitError, match="no file matches"):
+        expand_inputs([str(tmp_path / "*.stl")])
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "old.ply").write_text("")  # an earlier batch's output is never an input
+    found = expand_inputs([str(tmp_path / "**" / "*.ply")], exclude=tmp_path / "out")
+    assert tmp_path / "out" / "old.ply" not in found and len(found) == 2
+
+
+def test_manifest_skips_a_line_cut_short_and_refuses_a_second_writer(tmp_path):
+    path = tmp_path / MANIFEST_NAME
+    with Manifest(path) as manifest:
+        manifest.append({"event": "fit", "input": "a", "status": "done"})
+        with pytest.raises(StatfitError, match="another batch"):
+            Manifest(path)
+    with open(path, "ab") as handle:
+        handle.write(b'{"event": "fit", "input": "b", "sta')  # killed mid-line
+    with Manifest(path) as manifest:
+        manifest.append({"event": "fit", "input": "c", "status": "done"})
+    assert [row["input"] for row in read_rows(path)] == ["a", "c"]
+
+
+def test_crashing_and_hanging_fits_fail_alone_and_the_batch_goes_on(tmp_path):
+    names = ["ok1", "crash", "ok2", "hang", "bad", "ok3", "ok4"]
+    for name in names:
+        (tmp_path / f"{name}.ply").write_bytes(name.encode())
+    items = plan_outputs(expand_inputs([str(tmp_path / "*.ply")]), tmp_path / "out")
+    (tmp_path / "out").mkdir()
+    job = FitJob("register", None, None, resolve("none"))
+    engine = LocalPool(2)
+    try:
+        report = run_batch(items, job, tmp_path / "out", engine, timeout=8, work=copy_or_misbehave)
+    finally:
+        engine.close()
+    failed = dict((Path(source).stem, reason) for source, reason in report.failed)
+    assert failed == {"crash": WORKER_DIED, "hang": "timed out after 8 s", "bad": "bad is bad"}
+    assert report.done == 4
+    for name in ("ok1", "ok2", "ok3", "ok4"):
+        assert (tmp_path / "out" / f"{name}.ply").read_bytes() == name.encode()
+    assert not (tmp_path / "out" / "crash.ply").exists()
+
+
+def test_local_pool_fits_like_one_by_one_register_and_reruns_skip_what_is_done(scans, tmp_path):
+    out = tmp_path / "fits"
+    code, err = run_cli(["batch", "register", str(scans / "**" / "*.ply"), "--out-dir", str(out), "--workers", "2",
+                         "--seed", "3", *FAST])
+    assert code == 1, err  # two inputs are corrupt
+    rows = fit_rows(out)
+    assert sorted(Path(r["input"]).name for r in rows if r["status"] == "failed") == ["broken.ply", "empty.ply"]
+    assert all(r["error"] and "\n" not in r["error"] for r in rows if r["status"] == "failed")
+    done = sorted(r["output"] for r in rows if r["status"] == "done")
+    assert len(done) == 10 and all(d.startswith(("left/", "right/")) for d in done)
+    one = tmp_path / "one.ply"
+    assert run_cli(["register", str(scans / "left" / "scan03.ply"), "--out", str(one), "--seed", "3", "-q",
+                    *FAST])[0] == 0
+    assert (out / "left" / "scan03.ply").read_bytes() == one.read_bytes()
+    state = batch_status(out)
+    assert (len(state.done), len(state.failed), len(state.pending)) == (10, 2, 0)
+    # Rerun: only the two failures are tried again; a changed input is redone.
+    (scans / "left" / "scan01.ply").write_bytes((scans / "left" / "scan01.ply").read_bytes())  # same bytes
+    code, _ = run_cli(["batch", "register", str(scans / "**" / "*.ply"), "--out-dir", str(out), "--workers", "2",
+                       "--seed", "3", *FAST])
+    assert code == 1 and len(fit_rows(out)) == len(rows) + 2
+    # New settings redo everything.
+    code, _ = run_cli(["batch", "register", str(scans / "right" / "scan0[02].ply"), "--out-dir", str(out),
+                       "--workers", "1", "--seed", "4", *FAST])
+    assert code == 0 and len(fit_rows(out)) == len(rows) + 4
+
+
+def test_a_killed_batch_resumes_without_redoing_what_it_recorded(scans, tmp_path):
+    out = tmp_path / "fits"
+    command = [sys.executable, "-m", "statfit_cli.main", "batch", "register", str(scans / "**" / "scan*.ply"),
+               "--out-dir", str(out), "--workers", "2", "-q", "--iterations", "300"]
+    process = subprocess.Popen(command, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and len(fit_rows(out) if out.exists() else []) < 3:
+        time.sleep(0.05)
+    workers = [int(pid) for pid in Path(f"/proc/{process.pid}/task/{process.pid}/children").read_text().split()]
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and any(Path(f"/proc/{pid}").exists() for pid in workers):
+        time.sleep(0.1)
+    assert workers and not any(Path(f"/proc/{pid}").exists() for pid in workers), "workers outlived the batch"
+    before = {r["input"] for r in fit_rows(out)}
+    assert 3 <= len(before) < 10, "the kill came too late to test resuming"
+    assert subprocess.run(command, stderr=subprocess.DEVNULL).returncode == 0
+    after = [r["input"] for r in fit_rows(out)[len(before):]]
+    assert not set(after) & before and len(set(after)) == len(after) == 10 - len(before)
+    assert len(list(out.rglob("*.ply"))) == 10
+    assert not list(out.rglob(".statfit-*"))  # no temporary file left behind
+
+
+def test_sigterm_stops_the_batch_with_code_130_and_a_clean_manifest(scans, tmp_path):
+    out = tmp_path / "fits"
+    command = [sys.executable, "-m", "statfit_cli.main", "batch", "register", str(scans / "**" / "scan*.ply"),
+               "--out-dir", str(out), "--workers", "1", "--iterations", "300"]
+    process = subprocess.Popen(command, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and len(fit_rows(out) if out.exists() else []) < 1:
+        time.sleep(0.05)
+    process.send_signal(signal.SIGTERM)
+    _, err = process.communicate(timeout=60)
+    assert process.returncode == 130 and "rerun the same command" in err
+    lines = (out / MANIFEST_NAME).read_bytes().splitlines()
+    assert all(json.loads(line) for line in lines)
+    assert len(batch_status(out).pending) > 0
+
+
+def test_dask_local_cluster_gives_the_same_outputs(scans, tmp_path):
+    pytest.importorskip("distributed")
+    local, dask = tmp_path / "local", tmp_path / "dask"
+    pattern = str(scans / "left" / "*.ply")
+    assert run_cli(["batch", "register", pattern, "--out-dir", str(local), "--workers", "1", *FAST])[0] == 1
+    code, err = run_cli(["batch", "register", pattern, "--out-dir", str(dask), "--cluster", "local", "--workers", "2",
+                         *FAST])
+    assert code == 1, err
+    assert {r["output"]: r["status"] for r in fit_rows(local)} == {r["output"]: r["status"] for r in fit_rows(dask)}
+    for output in local.rglob("*.ply"):
+        assert output.read_bytes() == (dask / output.relative_to(local)).read_bytes()
+
+
+@pytest.mark.parametrize("arguments, message", [
+    (["--cluster", "big"], "--cluster takes 'local'"),
+    (["--cluster", "local", "--scheduler", "tcp://x:1"], "either --scheduler"),
+    (["--workers", "0"], "--workers"),
+    (["--timeout", "0"], "--timeout"),
+    (["--region", "nowhere"], "nowhere"),
+])
+def test_a_batch_that_cannot_start_says_why_in_one_line(scans, tmp_path, arguments, message):
+    code, err = run_cli(["batch", "register", str(scans / "left" / "*.ply"), "--out-dir", str(tmp_path / "o"),
+                         *arguments])
+    assert code == 2 and message in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "o").exists()
+
+
+def test_status_of_a_folder_without_a_batch(tmp_path):
+    code, err = run_cli(["batch", "status", str(tmp_path)])
+    assert code == 2 and "no batch" in err
+
+
+def test_dask_replaces_the_worker_of_a_hung_fit(tmp_path):
+    pytest.importorskip("distributed")
+    from statfit.batch.engines import DaskPool
+
+    for name in ("ok1", "hang", "ok2", "bad"):
+        (tmp_path / f"{name}.ply").write_bytes(name.encode())
+    items = plan_outputs(expand_inputs([str(tmp_path / "*.ply")]), tmp_path / "out")
+    (tmp_path / "out").mkdir()
+    engine = DaskPool("local", 2)
+    try:
+        report = run_batch(items, FitJob("register", None, None, resolve("none")), tmp_path / "out", engine,
+                           timeout=4, work=copy_or_misbehave)
+    finally:
+        engine.close()
+    assert report.done == 2
+    assert dict((Path(s).stem, r) for s, r in report.failed) == {"hang": "timed out after 4 s", "bad": "bad is bad"}
