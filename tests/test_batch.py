@@ -213,3 +213,19 @@ def test_dask_replaces_the_worker_of_a_hung_fit(tmp_path):
         engine.close()
     assert report.done == 2
     assert dict((Path(s).stem, r) for s, r in report.failed) == {"hang": "timed out after 4 s", "bad": "bad is bad"}
+
+
+def test_batch_render_fits_each_map_like_render(tmp_path):
+    maps = tmp_path / "maps"
+    maps.mkdir()
+    for seed in (1, 2):
+        assert run_cli(["synth", "normals", "--seed", str(seed), "--size", "64", "--out", str(maps / f"m{seed}.exr")])[0] == 0
+    (maps / "m3.exr").write_bytes(b"not an exr")
+    out = tmp_path / "fits"
+    code, err = run_cli(["batch", "render", str(maps / "*.exr"), "--camera-from-header", "--out-dir", str(out),
+                         "--workers", "2", "--iterations", "20", "-q"])
+    assert code == 1, err
+    assert {r["output"]: r["status"] for r in fit_rows(out)} == {"m1.ply": "done", "m2.ply": "done", "m3.ply": "failed"}
+    one = tmp_path / "one.ply"
+    assert run_cli(["render", str(maps / "m2.exr"), "--out", str(one), "--iterations", "20", "-q"])[0] == 0
+    assert (out / "m2.ply").read_bytes() == one.read_bytes()
