@@ -9,12 +9,15 @@ from statfit.batch.fits import FitJob, Outcome
 
 
 def copy_or_misbehave(job: FitJob, source: str) -> Outcome:
-    """``crash*`` kills its worker, ``hang*`` sleeps for an hour, ``bad*`` fails; others are copied."""
+    """``crash*`` kills its worker, ``hang*`` sleeps for an hour, ``bad*`` fails, ``slow*`` takes half a
+    second; all but the first three are copied."""
     name = Path(source).stem
     if name.startswith("crash"):
         os._exit(3)
     if name.startswith("hang"):
         time.sleep(3600)
+    if name.startswith("slow"):
+        time.sleep(0.5)
     if name.startswith("bad"):
         return Outcome(None, {}, f"{name} is bad", 0.0)
     return Outcome(Path(source).read_bytes(), {"worker": os.getpid()}, None, 0.0)

@@ -229,3 +229,19 @@ def test_batch_render_fits_each_map_like_render(tmp_path):
     one = tmp_path / "one.ply"
     assert run_cli(["render", str(maps / "m2.exr"), "--out", str(one), "--iterations", "20", "-q"])[0] == 0
     assert (out / "m2.ply").read_bytes() == one.read_bytes()
+
+
+def test_a_pool_of_n_workers_runs_n_processes(tmp_path):
+    for index in range(8):
+        (tmp_path / f"slow{index}.ply").write_bytes(b"x")
+    items = plan_outputs(expand_inputs([str(tmp_path / "*.ply")]), tmp_path / "out")
+    (tmp_path / "out").mkdir()
+    for workers in (1, 2):
+        engine = LocalPool(workers)
+        try:
+            run_batch(items, FitJob("register", None, None, resolve("none")), tmp_path / "out", engine, force=True,
+                      work=copy_or_misbehave)
+        finally:
+            engine.close()
+        last = fit_rows(tmp_path / "out")[-8:]
+        assert len({row["summary"]["worker"] for row in last}) <= workers
