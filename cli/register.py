@@ -10,7 +10,7 @@ from statfit.io.files import existing_file
 from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_points
 from statfit.io.landmarks import read_landmarks
 from statfit.methods import resolve
-from statfit.register import register as fit_scan, resolve_device
+from statfit.register import LANDMARK_WEIGHT, register as fit_scan, resolve_device
 from statfit.importers.cache import open_model
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
                                 LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
@@ -35,10 +35,15 @@ def register(
     region: str = typer.Option(None, "--region", help="Fit only the model's region NAME (a region_NAME array in "
                                "the npz, e.g. face): scan points closest to other parts are ignored; the "
                                "rest of the mesh follows the model's prior.", show_default=False),
-    landmarks: Path = typer.Option(None, "--landmarks", help="Text file of the scan's landmarks, one 'x y z' row "
-                                   "per model landmark in the model's order ('nan nan nan' if missing): a "
-                                   "similarity pre-alignment for scans in any pose, scale or units (refined by "
-                                   "--align rigid/similarity if given).", show_default=False),
+    landmarks: Path = typer.Option(None, "--landmarks", help="The scan's landmarks, one per model landmark in the "
+                                   "model's order (missing: nan/null): text rows 'x y z', an iBUG .pts file (3D), or a "
+                                   "JSON list of [x, y, z]. They place the start (a robust similarity: any pose, scale "
+                                   "or units; refined by --align rigid/similarity if given) and stay a fit term.",
+                                   show_default=False),
+    landmark_weight: float = typer.Option(LANDMARK_WEIGHT, help="Weight of the landmark term against the scan's mean "
+                                          "squared distance (robust: a landmark ~5% of the head's size off its place "
+                                          "stops pulling); 0 uses the landmarks for the start only.",
+                                          callback=within(0, 1e6)),
     device: str = DeviceOption,
     threads: int = ThreadsOption,
     seed: int = SeedOption,
@@ -85,12 +90,12 @@ def register(
     header = dict(method=method, preset=preset, stages=[s.describe() for s in stages], model=model.source,
                   modes=model.num_modes, input=scan, points=len(points), align=align, device=str(torch_device),
                   threads=threads, seed=seed, refresh=refresh, trim=trim, region=region,
-                  landmarks=str(landmarks) if landmarks else None)
+                  landmarks=str(landmarks) if landmarks else None, landmark_weight=landmark_weight)
     label = Path(scan).name if scan != "-" else "stdin"
     with fit_run("register", log, label, sum(s.iterations for s in stages), quiet, **header) as run:
         result = fit_scan(model, points, stages=stages, align=align, device=str(torch_device),
                           refresh_every=refresh, trim=trim, seed=seed, on_record=run.on_record,
-                          region=region, landmarks=scan_landmarks, threads=threads)
+                          region=region, landmarks=scan_landmarks, landmark_weight=landmark_weight, threads=threads)
     summary = {"input": scan, "output": target, "method": method, "iterations": result.iterations,
                "final_loss": result.loss, "seconds": result.seconds,
                "stage_seconds": result.stage_seconds, "model_to_scan": result.transform.as_matrix().tolist()}

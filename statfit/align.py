@@ -38,15 +38,18 @@ class Similarity:
         return m
 
 
-def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool) -> Similarity:
-    """Least-squares similarity (or rigid) transform mapping ``source`` (M, 3) onto ``target``."""
-    mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
+def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool, weights: np.ndarray | None = None
+            ) -> Similarity:
+    """Least-squares similarity (or rigid) transform mapping ``source`` (M, 3) onto ``target``,
+    each pair weighted by ``weights`` (M,) if given."""
+    w = np.full(len(source), 1.0 / len(source)) if weights is None else weights / weights.sum()
+    mu_s, mu_t = w @ source, w @ target
     s, t = source - mu_s, target - mu_t
-    u, sing, vt = np.linalg.svd(t.T @ s / len(source))
+    u, sing, vt = np.linalg.svd((t * w[:, None]).T @ s)
     d = np.ones(3)
     d[2] = np.sign(np.linalg.det(u @ vt)) or 1.0
     rotation = u @ np.diag(d) @ vt
-    scale = float((sing * d).sum() / (s**2).sum(axis=1).mean()) if with_scale else 1.0
+    scale = float((sing * d).sum() / (w @ (s**2).sum(axis=1))) if with_scale else 1.0
     return Similarity(scale, rotation, mu_t - scale * rotation @ mu_s)
 
 

@@ -16,6 +16,7 @@ from statfit.frame import Frame
 from statfit.methods import resolve
 from statfit.settings import FitSpace, Settings
 from statfit.model import StatModel, region_triangles
+from statfit.objectives.landmarks import LandmarkObjective, WithLandmarks
 from statfit.objectives.scan import ScanObjective
 from statfit.stages import Fit, run_stages
 from statfit.threads import choose_threads, intra_op_threads
@@ -27,6 +28,9 @@ UNIT_MISMATCH_FACTOR = 8.0
 IMPLAUSIBLE_COORDINATE = 1e9
 # Median scan-to-template distance (in model RMS radii) above which the scan is "far" from the model.
 FAR_DISTANCE = 0.25
+ROBUST_ALIGNMENT_ROUNDS = 10
+# Weight of the landmark term against the scan's mean squared distance (docs/studies.md §12).
+LANDMARK_WEIGHT = 10.0
 
 
 def check_scan(points: np.ndarray, source: str = "scan") -> np.ndarray:
@@ -58,9 +62,8 @@ def resolve_device(device: str) -> torch.device:
     return torch.device(device)
 
 
-def landmark_alignment(model: StatModel, landmarks: np.ndarray) -> Similarity:
-    """The similarity (scale, rotation, translation) that best maps the model's landmark vertices
-    onto the scan's ``landmarks`` (L, 3), in the model's landmark order; NaN rows are missing."""
+def present_landmarks(model: StatModel, landmarks: np.ndarray) -> np.ndarray:
+    """(L,) bool: the scan's landmarks given (not NaN), after checking the count against the model's."""
     if model.landmarks is None:
         raise StatfitError(f"the model {model.source} has no landmarks, so --landmarks cannot be used")
     landmarks = np.asarray(landmarks, dtype=np.float64)
@@ -71,7 +74,24 @@ def landmark_alignment(model: StatModel, landmarks: np.ndarray) -> Similarity:
     source = model.template[model.landmarks[present]]
     if present.sum() < 3 or np.linalg.matrix_rank(source - source.mean(axis=0), tol=1e-9 * np.ptp(source)) < 2:
         raise StatfitError(f"--landmarks needs at least 3 present, non-collinear landmarks; got {int(present.sum())}")
-    return umeyama(source, landmarks[present], with_scale=True)
+    return present
+
+
+def landmark_alignment(model: StatModel, landmarks: np.ndarray) -> Similarity:
+    """The similarity (scale, rotation, translation) that best maps the model's landmark vertices
+    onto the scan's ``landmarks`` (L, 3), in the model's landmark order; NaN rows are missing.
+    Robust to a few misplaced landmarks: iteratively reweighted (Geman–McClure, scale from the
+    median residual), so a landmark far from where the others put it stops counting."""
+    landmarks = np.asarray(landmarks, dtype=np.float64)
+    present = present_landmarks(model, landmarks)
+    source, target = model.template[model.landmarks[present]], landmarks[present]
+    transform = umeyama(source, target, with_scale=True)
+    floor = 1e-3 * float(np.linalg.norm(np.ptp(target, axis=0)))
+    for _ in range(ROBUST_ALIGNMENT_ROUNDS):
+        residual2 = np.square(transform.apply(source) - target).sum(axis=1)
+        s2 = max(1.4826 * float(np.sqrt(np.median(residual2))), floor) ** 2
+        transform = umeyama(source, target, with_scale=True, weights=(s2 / (s2 + residual2)) ** 2)
+    return transform
 
 
 def prealign(model: StatModel, points: np.ndarray, align: str, landmarks: np.ndarray | None = None) -> Similarity:
@@ -103,13 +123,14 @@ def register(model: StatModel, points: np.ndarray, method: str = "default", *, p
              timer: StageTimer | None = None, stages: tuple[Settings, ...] | None = None,
              region: str | None = None, landmarks: np.ndarray | None = None,
              on_snapshot: Callable[[int, np.ndarray], None] | None = None, threads: int | None = None,
-             **overrides: Any) -> Fit:
+             landmark_weight: float = LANDMARK_WEIGHT, **overrides: Any) -> Fit:
     """Fit ``model`` to the scan ``points`` (M, 3) with ``method``.
 
     ``region`` names a stored vertex subset: only scan points whose closest surface point lies on
     the region's triangles enter the data term, while the filter and prior still move every vertex.
     ``landmarks`` (L, 3), the scan's points for the model's landmarks (NaN = missing), pre-align the
-    scan by a similarity first (refined by ICP when ``align`` is rigid or similarity).
+    scan by a similarity first (refined by ICP when ``align`` is rigid or similarity), then stay a
+    fit term of ``landmark_weight`` (0: the start only; :mod:`statfit.objectives.landmarks`).
     ``on_snapshot(iteration, vertices)`` receives the current vertices (N, 3), in the scan's frame,
     every 10 iterations (e.g. to trace the error against a ground truth). ``threads``: torch
     intra-op threads for the fit (default: chosen from the model's size, :mod:`statfit.threads`).
@@ -122,6 +143,8 @@ def register(model: StatModel, points: np.ndarray, method: str = "default", *, p
         raise StatfitError(f"trim must lie in [0, 1), got {trim}")
     if refresh_every < 1:
         raise StatfitError(f"refresh_every must be at least 1, got {refresh_every}")
+    if not (np.isfinite(landmark_weight) and 0 <= landmark_weight <= 1e6):
+        raise StatfitError(f"landmark_weight must be a finite number in [0, 1e6], got {landmark_weight}")
     stages = stages or resolve(method, preset, **overrides)
     torch_device = resolve_device(device)
     with intra_op_threads(choose_threads(model.basis.size, threads)):
@@ -141,6 +164,12 @@ def register(model: StatModel, points: np.ndarray, method: str = "default", *, p
         if align == "none" and landmarks is None and median > FAR_DISTANCE:
             warnings.warn(f"the scan is far from the model (median distance {median * frame.scale:.3g}, "
                           f"{median:.2f} model radii); consider --align rigid", StatfitWarning, stacklevel=2)
+        if landmarks is not None and landmark_weight > 0:
+            present = present_landmarks(model, landmarks)
+            targets = frame.to_unit(transform.inverse_apply(np.asarray(landmarks, dtype=np.float64)[present]))
+            objective = WithLandmarks(objective, LandmarkObjective(
+                torch.as_tensor(model.landmarks[present], device=torch_device),
+                torch.as_tensor(targets, dtype=dtype, device=torch_device), landmark_weight))
         timer = timer or StageTimer(sync=torch_device.type == "cuda")
         def to_scan_frame(x: torch.Tensor) -> np.ndarray:
             return transform.apply(frame.from_unit(x.detach().cpu().double().numpy()))

@@ -1,0 +1,112 @@
+"""Landmarks: the file formats, the robust start, and the landmark term (its value in closed
+form, its Gauss–Newton residuals against autograd, its pull on a fit)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from statfit.align import Similarity
+from statfit.errors import StatfitError
+from statfit.io.landmarks import MAX_LANDMARK_BYTES, read_landmarks
+from statfit.objectives.landmarks import LandmarkObjective
+from statfit.register import landmark_alignment
+from scipy.spatial.transform import Rotation
+
+
+@pytest.mark.parametrize("name, text", [
+    ("l.txt", "1 2 3\nnan nan nan\n4 5 6\n"),
+    ("l.pts", "version: 1\nn_points: 3\n{\n1 2 3\nnan nan nan\n4 5 6\n}\n"),
+    ("l.json", "[[1, 2, 3], null, [4, 5, 6]]"),
+])
+def test_every_format_reads_the_same_points(tmp_path, name, text):
+    (tmp_path / name).write_text(text)
+    np.testing.assert_array_equal(read_landmarks(tmp_path / name), [[1, 2, 3], [np.nan] * 3, [4, 5, 6]])
+
+
+@pytest.mark.parametrize("name, text, message", [
+    ("a.pts", "version: 1\nn_points: 2\n{\n1 2\n3 4\n}\n", "2D landmarks"),
+    ("b.pts", "version: 1\nn_points: 3\n{\n1 2 3\n}\n", "n_points says 3"),
+    ("c.pts", "1 2 3\n", "between { and }"),
+    ("d.json", "{\"x\": 1}", "JSON list"),
+    ("e.json", "[[1, 2, \"z\"]]", "JSON list"),
+    ("f.json", "[[1, 2", "not JSON"),
+    ("g.txt", "1 2\n", "three numbers"),
+])
+def test_bad_landmark_files_are_one_line_errors(tmp_path, name, text, message):
+    (tmp_path / name).write_text(text)
+    with pytest.raises(StatfitError, match=message):
+        read_landmarks(tmp_path / name)
+
+
+def test_a_huge_landmark_file_is_refused_by_its_size(tmp_path):
+    with open(tmp_path / "huge.txt", "wb") as handle:
+        handle.truncate(MAX_LANDMARK_BYTES + 1)
+    with pytest.raises(StatfitError, match="too large"):
+        read_landmarks(tmp_path / "huge.txt")
+
+
+def test_one_misplaced_landmark_does_not_move_the_start(embedded_model):
+    truth = Similarity(10.0, Rotation.from_euler("xyz", [40, -70, 20], degrees=True).as_matrix(),
+                       np.array([5.0, -300.0, 80.0]))
+    landmarks = truth.apply(embedded_model.template[embedded_model.landmarks])
+    landmarks[3] += [0.0, 0.0, 10.0 * np.ptp(embedded_model.template[:, 2])]  # one landmark a head's depth away
+    found = landmark_alignment(embedded_model, landmarks)
+    assert abs(found.scale - 10.0) < 1e-3 and np.abs(found.rotation - truth.rotation).max() < 1e-4
+    np.testing.assert_allclose(found.translation, truth.translation, atol=1e-2)
+
+
+def test_the_term_is_geman_mcclure_and_gauss_newton_sees_its_gradient():
+    torch.manual_seed(0)
+    vertices = torch.randn(40, 3, dtype=torch.float64)
+    indices = torch.tensor([1, 5, 7, 30])
+    targets = vertices[indices] + torch.tensor([[0.01, 0, 0], [0, 0.02, 0], [0, 0, 0.5], [0.03, 0, 0.04]],
+                                               dtype=torch.float64)
+    term = LandmarkObjective(indices, targets, weight=2.0, scale=0.05)
+    d2 = torch.tensor([0.01**2, 0.02**2, 0.5**2, 0.05**2], dtype=torch.float64)
+    expected = 2.0 * (0.05**2 * d2 / (0.05**2 + d2)).mean()
+    assert float(term(vertices)["landmarks"]) == pytest.approx(float(expected), rel=1e-12)
+    # Gauss–Newton: ∇_c Σ r² at the refresh = ∇_c (per · term) for x = x0 + D c.
+    directions = torch.randn(40, 3, 6, dtype=torch.float64)
+    coefficients = torch.zeros(6, dtype=torch.float64, requires_grad=True)
+    moved = vertices + directions @ coefficients
+    per = 17.0
+    (per * term(moved)["landmarks"]).backward()
+    term.refresh(vertices)
+    residuals = term.residuals(vertices, per)
+    gauss_newton = 2 * term.jacobian(directions, per).T @ residuals
+    torch.testing.assert_close(gauss_newton, coefficients.grad, rtol=1e-10, atol=1e-12)
+    # The far landmark (10 scales away) pulls ~1000x less than the near ones.
+    pull = torch.autograd.functional.jacobian(lambda x: term(x)["landmarks"], vertices)[indices].norm(dim=1)
+    assert pull[2] < 1e-2 * pull[1]
+
+
+@pytest.mark.parametrize("seed", [0, 2])
+def test_the_landmark_term_holds_the_landmarks_where_the_start_alone_drifts(embedded_model, tmp_path, seed):
+    """Off the model's span (fitted with 10 of 50 modes), one landmark misplaced by half the head:
+    with the term the other landmarks end ≤ 0.5x as far from the truth as with the start only."""
+    from conftest import run_cli
+    from statfit.io.mesh import points_bytes
+    from statfit.register import register
+    from statfit.synth import sample_target, scan_from_view
+
+    rng = np.random.default_rng(seed)
+    target = sample_target(embedded_model, rng, 1.5)
+    points = scan_from_view(target, embedded_model.faces, rng, 3000, 30.0)
+    landmarks = target[embedded_model.landmarks].copy()
+    landmarks[0] += 0.5 * np.ptp(embedded_model.template, axis=0)
+    small = embedded_model.truncated(10)
+    errors = {}
+    for weight in (0.0, 10.0):
+        fit = register(small, points, "default", landmarks=landmarks, landmark_weight=weight, iterations=400)
+        errors[weight] = (np.linalg.norm(fit.vertices[small.landmarks][1:] - landmarks[1:], axis=1).mean(),
+                          np.linalg.norm(fit.vertices - target, axis=1).mean())
+    assert errors[10.0][0] <= 0.5 * errors[0.0][0], errors
+    assert errors[10.0][1] <= 1.1 * errors[0.0][1], errors
+    # The same from the command line, with the landmarks as an iBUG .pts file.
+    (tmp_path / "scan.ply").write_bytes(points_bytes(points))
+    rows = "\n".join(" ".join(f"{v:.9g}" for v in row) for row in landmarks)
+    (tmp_path / "l.pts").write_text(f"version: 1\nn_points: {len(landmarks)}\n{{\n{rows}\n}}\n")
+    code, err = run_cli(["register", str(tmp_path / "scan.ply"), "--landmarks", str(tmp_path / "l.pts"),
+                         "--landmark-weight", "10", "--iterations", "40", "-q", "--out", str(tmp_path / "fit.ply")])
+    assert code == 0, err
