@@ -41,8 +41,8 @@ def register(
                                    "or units; refined by --align rigid/similarity if given) and stay a fit term.",
                                    show_default=False),
     landmark_weight: float = typer.Option(LANDMARK_WEIGHT, help="Weight of the landmark term against the scan's mean "
-                                          "squared distance (robust: a landmark ~5% of the head's size off its place "
-                                          "stops pulling); 0 uses the landmarks for the start only.",
+                                          "squared distance (robust: beyond ~5% of the model's radius off its place, a "
+                                          "landmark pulls less the farther it is); 0: the start only.",
                                           callback=within(0, 1e6)),
     device: str = DeviceOption,
     threads: int = ThreadsOption,
