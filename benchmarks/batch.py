@@ -9,14 +9,15 @@ engine's overhead per fit, and the manifest's bookkeeping at 10,000 inputs with 
 2. The same (b)–(d) on the ICT head with the default pipeline (4 study scans): the engine's
    overhead per ICT-sized fit is (c − b) / b.
 3. Bookkeeping: 10,000 tiny inputs with the fit replaced by a stub that copies the input, on 2
-   workers: seconds for the whole batch, and for a rerun that skips everything; then 20 runs
-   each killed (SIGKILL) at a random moment, the manifest checked after every kill, and a last
-   run to the end: every input done once, each recorded output present with its size.
+   workers: seconds for the whole batch, and for a rerun that skips everything; then 20 fresh
+   batches, each killed (SIGKILL) at a random moment of its run, the manifest checked, resumed to
+   the end and checked again: every input done once, each recorded output present with its size.
 """
 from __future__ import annotations
 
 import json
 import random
+import shutil
 import signal
 import subprocess
 import sys
@@ -172,17 +173,20 @@ def _bookkeeping(count: int, kills: int) -> dict:
         first = _timed(run(str(Path(tmp) / "full")))
         rerun = _timed(run(str(Path(tmp) / "full")))
         full = _check_manifest(Path(tmp) / "full")
-        killed = str(Path(tmp) / "killed")
-        checks = []
-        for _ in range(kills):
-            process = subprocess.Popen(run(killed), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-            time.sleep(rng.uniform(0.5, first))  # any moment: starting, fitting, writing, or already done
+        rounds = []
+        for index in range(kills):  # each round: a fresh batch killed at a random moment, checked, resumed, checked
+            out = Path(tmp) / f"killed{index}"
+            process = subprocess.Popen(run(str(out)), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            moment = rng.uniform(0.5, first)  # starting up, fitting, writing: anywhere in the run
+            time.sleep(moment)
             process.send_signal(signal.SIGKILL)
             process.wait()
-            checks.append(_check_manifest(Path(killed)))
-        subprocess.run(run(killed), check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        final = _check_manifest(Path(killed))
-    return {"inputs": count, "first_run_s": first, "rerun_s": rerun, "full": full, "kills": checks, "final": final}
+            after_kill = _check_manifest(out) if (out / "manifest.jsonl").exists() else {"done": 0, "redone": 0,
+                                                                                        "cut_lines": 0}
+            subprocess.run(run(str(out)), check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            rounds.append({"moment_s": moment, "after_kill": after_kill, "resumed": _check_manifest(out)})
+            shutil.rmtree(out)
+    return {"inputs": count, "first_run_s": first, "rerun_s": rerun, "full": full, "rounds": rounds}
 
 
 def measure(quick: bool) -> dict:
@@ -207,7 +211,11 @@ def _speed_table(seconds: dict, count: int) -> str:
 
 
 def run(quick: bool, device: str, image_dir) -> Section:
-    data = measure(quick)
+    return section(measure(quick), quick)
+
+
+def section(data: dict, quick: bool) -> Section:
+    """The report's section for measured ``data``."""
     embedded = QUICK_EMBEDDED if quick else EMBEDDED
     parts = [f"**Embedded model**, {embedded['scans']} scans (4,300 points), `{' '.join(embedded['method'])}`, "
              f"whole-command wall seconds:\n\n{_speed_table(data['embedded'], embedded['scans'])}"]
@@ -218,14 +226,17 @@ def run(quick: bool, device: str, image_dir) -> Section:
         parts.append(f"**ICT head**, {count} study scans, the default pipeline:\n\n{_speed_table(ict, count)}\n\n"
                      f"Engine overhead per ICT-sized fit (batch with 1 worker vs one process): {100 * overhead:+.1f}%.")
     book = data["bookkeeping"]
-    kills = book["kills"]
+    rounds = book["rounds"]
+    complete = sum(r["resumed"]["done"] == book["inputs"] for r in rounds)
     parts.append(
         f"**Bookkeeping**: {book['inputs']:,} tiny inputs, the fit replaced by a stub copying its input, 2 workers: "
-        f"{book['first_run_s']:.1f} s for the batch, {book['rerun_s']:.1f} s for a rerun that skips every input. "
-        f"{len(kills)} runs killed (SIGKILL) at random moments: after every kill each recorded output was present "
-        f"with its recorded size; inputs recorded done after the kills: "
-        f"{', '.join(str(k['done']) for k in kills)}; lines cut short by a kill: "
-        f"{sum(k['cut_lines'] for k in kills)}; inputs done twice: {book['final']['redone']} (an output written "
-        f"but not yet recorded when the kill came is redone). The last run finished all "
-        f"{book['final']['done']:,} inputs.")
+        f"{book['first_run_s']:.1f} s for the batch (imports and worker start included), {book['rerun_s']:.1f} s "
+        f"for a rerun that skips every input. Then {len(rounds)} fresh batches, each killed (SIGKILL) at a random "
+        f"moment ({min(r['moment_s'] for r in rounds):.1f}–{max(r['moment_s'] for r in rounds):.1f} s), checked, "
+        f"resumed and checked again: after every kill each recorded output was present with its recorded size; "
+        f"inputs recorded when killed: {', '.join(str(r['after_kill']['done']) for r in rounds)}; lines cut short "
+        f"by a kill: {sum(r['after_kill']['cut_lines'] for r in rounds)}; inputs fitted twice across kill and "
+        f"resume: {sum(r['resumed']['redone'] for r in rounds)} (only an output written but not yet recorded when "
+        f"the kill came is redone); resumed batches that finished all {book['inputs']:,}: {complete} of "
+        f"{len(rounds)}.")
     return Section("batch", "Batches: throughput, engine overhead, bookkeeping", "\n\n".join(parts), data=data)

@@ -168,7 +168,7 @@ def test_sigterm_stops_the_batch_with_code_130_and_a_clean_manifest(scans, tmp_p
 def test_dask_local_cluster_gives_the_same_outputs(scans, tmp_path):
     pytest.importorskip("distributed")
     local, dask = tmp_path / "local", tmp_path / "dask"
-    pattern = str(scans / "left" / "*.ply")
+    pattern = str(scans / "**" / "*.ply")  # 12 scans, 2 of them corrupt
     assert run_cli(["batch", "register", pattern, "--out-dir", str(local), "--workers", "1", *FAST])[0] == 1
     code, err = run_cli(["batch", "register", pattern, "--out-dir", str(dask), "--cluster", "local", "--workers", "2",
                          *FAST])

@@ -8,6 +8,7 @@ the workers running timed-out futures and returns the other futures it had to st
 from __future__ import annotations
 
 import concurrent.futures as cf
+import logging
 import multiprocessing
 import multiprocessing.connection
 import os
@@ -114,7 +115,7 @@ class DaskPool:
         try:
             if address == "local":
                 self._cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                             dashboard_address=None)
+                                             dashboard_address=None, silence_logs=logging.ERROR)
                 self._client = Client(self._cluster)
             else:
                 self._client = Client(address, timeout="20s")
