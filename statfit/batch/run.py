@@ -122,7 +122,7 @@ def _drive(todo: list[tuple[Item, str | None]], job: FitJob, engine: Engine, wor
            timeout: float | None, recorder: _Recorder) -> None:
     queue = deque(todo)
     suspects: deque[tuple[Item, str | None]] = deque()  # in flight when a worker died: rerun alone
-    running: dict[Any, list] = {}  # future → [item, digest, alone, start]; submission order = start order
+    running: dict[Any, list] = {}  # future → [item, digest, alone]; submission order = start order
     started: dict[Any, float] = {}  # the futures a worker has taken (the oldest ``engine.workers``), since when
 
     def submit(entry: tuple[Item, str | None], alone: bool) -> None:
