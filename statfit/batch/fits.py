@@ -72,8 +72,7 @@ def prepare_worker(max_threads: int | None = None) -> None:
 def _fit(job: FitJob, source: str, model: StatModel) -> tuple[bytes, dict[str, Any]]:
     common = dict(stages=job.stages, device=job.device, threads=job.threads)
     if job.command == "register":
-        options = dict(job.options)
-        result = register(model, read_points(source), **common, **options)
+        result = register(model, read_points(source), **common, **job.options)
         pose = {"model_to_scan": result.transform.as_matrix().tolist()}
     elif job.command == "render":
         options = dict(job.options)

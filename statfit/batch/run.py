@@ -58,8 +58,10 @@ class _Recorder:
                     item.output.parent.mkdir(parents=True, exist_ok=True)
                     self.folders.add(item.output.parent)
                 write_atomic(item.output, outcome.data)
-            except (OSError, StatfitError) as exc:
-                error = f"cannot write {item.output}: {getattr(exc, 'strerror', None) or exc}"
+            except StatfitError as exc:  # write_atomic's message names the file
+                error = str(exc)
+            except OSError as exc:
+                error = f"cannot create {item.output.parent}: {exc.strerror}"
         if error is None:
             row.update(status="done", bytes=len(outcome.data), summary=outcome.summary)
             self.report.done += 1
