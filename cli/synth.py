@@ -9,6 +9,8 @@ import typer
 from statfit.errors import StatfitError
 from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, points_bytes, write_atomic
 from statfit.io.normalmap import write_camera, write_normal_map
+from statfit.io.landmarks import landmarks_text
+from statfit.scanner import UNITS_PER_METRE, realistic_scan
 from statfit.synth import camera_for_view, load_delta, render_target, sample_target, scan_from_view
 from statfit.importers.cache import open_model
 from statfit_cli.common import ModelOption, seed_option, within
@@ -54,26 +56,55 @@ def scan(
     delta: Path = DeltaOption,
     delta_name: str = DeltaNameOption,
     delta_weight: float = DeltaWeightOption,
+    realistic: bool = typer.Option(False, "--realistic", help="Scan as a range scanner would: a triangle mesh "
+                                   "with clutter (hair over the scalp, neck and shoulders below), holes, surfaces "
+                                   "at grazing angles lost, depth noise, in its own pose and units. --points is "
+                                   "then about the points on the shape."),
+    clutter: float = typer.Option(0.5, help="--realistic: clutter points per shape point (0: none).",
+                                  callback=within(0, 2)),
+    holes: int = typer.Option(3, help="--realistic: disks of lost data.", callback=within(0, 100)),
+    units: str = typer.Option("mm", help="--realistic: the scan's length unit (mm, cm or m)."),
+    pose: bool = typer.Option(True, "--pose/--no-pose", help="--realistic: turn the scan by a random rotation and "
+                              "offset (--no-pose: the model's frame, in --units)."),
+    landmarks_out: Path = typer.Option(None, help="--realistic: the true landmarks in the scan's frame (text, "
+                                       "'x y z' per model landmark).", show_default=False),
 ) -> None:
-    """A model sample seen from one side: a partial scan plus its ground-truth mesh.
+    """A model sample seen from one side: a partial scan plus its ground-truth mesh (in the scan's frame).
 
+        \b
         statfit synth scan --model model.npz --seed 3 --out scan.ply --gt gt.ply
+        statfit synth scan --model model.npz --seed 3 --realistic --units mm --out scan.ply --gt gt.ply
     """
     if points < 10:
         raise StatfitError("--points must be at least 10")
     if not 0 <= outliers < 1:
         raise StatfitError("--outliers must lie in [0, 1)")
-    for target in (out, gt):
+    if realistic and outliers > 0:
+        raise StatfitError("--outliers adds loose points to a point cloud; a --realistic scan is a mesh with clutter "
+                           "surfaces (--clutter) instead")
+    if units not in UNITS_PER_METRE:
+        raise StatfitError(f"unknown --units {units!r}; choose one of {', '.join(UNITS_PER_METRE)}")
+    if landmarks_out is not None and not realistic:
+        raise StatfitError("--landmarks-out goes with --realistic")
+    for target in (out, gt, landmarks_out):
         if target is not None:
             check_writable(target)
     check_delta_options(delta, delta_name)
     model = open_model(model_path)
+    if landmarks_out is not None and model.landmarks is None:
+        raise StatfitError(f"the model {model.source} has no landmarks to write")
     rng = np.random.default_rng(seed)
     shape = _target(model, rng, sigma, delta, delta_name, delta_weight)
-    cloud = scan_from_view(shape, model.faces, rng, points, yaw, pitch, noise, outliers)
-    write_atomic(out, points_bytes(cloud))
+    if not realistic:
+        scan_bytes = points_bytes(scan_from_view(shape, model.faces, rng, points, yaw, pitch, noise, outliers))
+    else:
+        made = realistic_scan(shape, model.faces, rng, points, yaw, pitch, clutter, holes, noise, units, pose)
+        scan_bytes, shape = mesh_bytes(made.vertices, made.faces, "ply"), made.truth
+    write_atomic(out, scan_bytes)
     if gt is not None:
         write_atomic(gt, mesh_bytes(shape, model.faces, mesh_format(gt)))
+    if landmarks_out is not None:
+        write_atomic(landmarks_out, landmarks_text(shape[model.landmarks]).encode())
 
 
 @app.command("normals")

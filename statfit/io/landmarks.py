@@ -87,3 +87,8 @@ def read_landmark_indices(path: str | Path) -> np.ndarray:
     if not tokens or not all(token.isdigit() for token in tokens):
         raise StatfitError(f"{path}: {what}")
     return np.array(tokens, dtype=np.int64)
+
+
+def landmarks_text(points: np.ndarray) -> str:
+    """Landmarks (L, 3) as the text format ``read_landmarks`` reads: one ``x y z`` row each."""
+    return "".join(f"{x!r} {y!r} {z!r}\n" for x, y, z in np.asarray(points, dtype=np.float64).tolist())
