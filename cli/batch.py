@@ -25,6 +25,7 @@ from statfit.batch.run import BatchReport, run_batch
 from statfit.errors import StatfitError
 from statfit.importers.cache import content_key, open_model
 from statfit.inverse_render import ALIGNMENTS, NORMAL_CONVENTIONS, NORMAL_SPACES, render_stages
+from statfit.register import ALIGNMENTS as SCAN_ALIGNMENTS
 from statfit.io.normalmap import read_camera
 from statfit.methods import resolve
 from statfit.model import StatModel, region_vertices
@@ -209,7 +210,8 @@ def batch_register(
     cluster: str = ClusterOption,
     timeout: float = TimeoutOption,
     force: bool = ForceOption,
-    align: str = typer.Option("none", help="Pre-alignment of each scan: none, rigid or similarity."),
+    align: str = typer.Option("auto", help="Pre-alignment of each scan: auto (pose, scale and units found), none, "
+                              "rigid or similarity (see `statfit register --help`)."),
     region: str = typer.Option(None, "--region", help="Fit only the model's region NAME (see `statfit register "
                                "--help`).", show_default=False),
     refresh: int = typer.Option(10, help="Recompute closest surface points every N iterations.",
@@ -241,8 +243,8 @@ def batch_register(
     """
     _check_engine(scheduler, cluster)
     stages = resolve(method, preset, **setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain))
-    if align not in ALIGNMENTS:
-        raise StatfitError(f"unknown alignment {align!r}; choose one of {', '.join(ALIGNMENTS)}")
+    if align not in SCAN_ALIGNMENTS:
+        raise StatfitError(f"unknown alignment {align!r}; choose one of {', '.join(SCAN_ALIGNMENTS)}")
     model_file, digest, model = _model_identity(model_path, k)
     if region is not None:
         region_vertices(model, region)

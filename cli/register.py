@@ -7,7 +7,7 @@ import typer
 
 from statfit.errors import StatfitError
 from statfit.io.files import existing_file
-from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_points
+from statfit.io.mesh import check_writable, load_scan, mesh_bytes, mesh_format
 from statfit.io.landmarks import read_landmarks
 from statfit.methods import resolve
 from statfit.register import LANDMARK_WEIGHT, register as fit_scan, resolve_device
@@ -30,8 +30,9 @@ def register(
     out: str = typer.Option(None, "--out", "-o", help="Fitted mesh (.ply or .obj; '-' for PLY on stdout). "
                             "Default: <scan>_fit.ply here.", show_default=False),
     log: Path = LogOption,
-    align: str = typer.Option("none", help="Pre-alignment: none, rigid or similarity (ICP; similarity also "
-                              "estimates scale, e.g. for a scan in other units)."),
+    align: str = typer.Option("auto", help="Pre-alignment. auto: finds the scan's pose, scale and units (mm, cm, m) "
+                              "without landmarks, and leaves a scan already on the model where it is; none: the scan "
+                              "lies in the model's frame; rigid/similarity: ICP from the centroids."),
     region: str = typer.Option(None, "--region", help="Fit only the model's region NAME (a region_NAME array in "
                                "the npz, e.g. face): scan points closest to other parts are ignored; the "
                                "rest of the mesh follows the model's prior.", show_default=False),
@@ -63,7 +64,9 @@ def register(
 ) -> None:
     """Non-rigid registration: deform the model's template onto a partial scan.
 
-    The output mesh has the template's topology and vertex order. Example:
+    The scan may come in any pose and in mm, cm or m (found by --align auto); a mesh scan's points
+    are drawn by area. The output mesh has the template's topology and vertex order, in the scan's
+    frame. Example:
 
         \b
         statfit register scan.ply --model model.npz --method statistical --out fit.ply --log fit.jsonl
@@ -86,9 +89,9 @@ def register(
         existing_file(scan, "scan")
     model = open_model(model_path, k)
     scan_landmarks = read_landmarks(landmarks) if landmarks is not None else None
-    points = read_points(scan)
+    points = load_scan(scan, seed)
     header = dict(method=method, preset=preset, stages=[s.describe() for s in stages], model=model.source,
-                  modes=model.num_modes, input=scan, points=len(points), align=align, device=str(torch_device),
+                  modes=model.num_modes, input=scan, points=len(points.points), align=align, device=str(torch_device),
                   threads=threads, seed=seed, refresh=refresh, trim=trim, region=region,
                   landmarks=str(landmarks) if landmarks else None, landmark_weight=landmark_weight)
     label = Path(scan).name if scan != "-" else "stdin"
@@ -98,5 +101,6 @@ def register(
                           region=region, landmarks=scan_landmarks, landmark_weight=landmark_weight, threads=threads)
     summary = {"input": scan, "output": target, "method": method, "iterations": result.iterations,
                "final_loss": result.loss, "seconds": result.seconds,
-               "stage_seconds": result.stage_seconds, "model_to_scan": result.transform.as_matrix().tolist()}
+               "stage_seconds": result.stage_seconds, "model_to_scan": result.transform.as_matrix().tolist(),
+               "pose": result.pose}
     finish(run, summary, {target: mesh_bytes(result.vertices, model.faces, mesh_format(target))}, json_out)

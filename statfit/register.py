@@ -13,15 +13,17 @@ from statfit.closest import ClosestPointQuery
 from statfit.errors import StatfitError, StatfitWarning
 from statfit.fit import StageTimer
 from statfit.frame import Frame
+from statfit.global_align import DISTINCT_DEGREES, estimate_pose
 from statfit.methods import resolve
 from statfit.settings import FitSpace, Settings
 from statfit.model import StatModel, region_triangles
 from statfit.objectives.landmarks import LandmarkObjective, WithLandmarks
 from statfit.objectives.scan import ScanObjective
+from statfit.scan import Scan
 from statfit.stages import Fit, run_stages
 from statfit.threads import choose_threads, intra_op_threads
 
-ALIGNMENTS = ("none", "rigid", "similarity")
+ALIGNMENTS = ("auto", "none", "rigid", "similarity")
 # A scan whose extent differs from the model's by more than this factor is taken to be in other units.
 UNIT_MISMATCH_FACTOR = 8.0
 # No scan in any length unit (metres to micrometres) has coordinates beyond this.
@@ -94,37 +96,50 @@ def landmark_alignment(model: StatModel, landmarks: np.ndarray) -> Similarity:
     return transform
 
 
-def prealign(model: StatModel, points: np.ndarray, align: str, landmarks: np.ndarray | None = None) -> Similarity:
-    """The model→scan transform for ``align`` in none|rigid|similarity; checks units first. With
-    ``landmarks`` (L, 3), the landmark similarity is the start (and, with align none, the result)."""
+def prealign(model: StatModel, scan: Scan, align: str, landmarks: np.ndarray | None = None, seed: int = 0
+             ) -> tuple[Similarity, dict | None]:
+    """The model→scan transform for ``align`` in auto|none|rigid|similarity, and for auto the
+    pose search's report (:mod:`statfit.global_align`); checks units first. With ``landmarks``
+    (L, 3), the landmark similarity is the start (and, with align none, the result; auto then
+    refines it as similarity does)."""
     if align not in ALIGNMENTS:
         raise StatfitError(f"unknown alignment {align!r}; choose one of {', '.join(ALIGNMENTS)}")
+    points = scan.points
     if landmarks is not None:
         start = landmark_alignment(model, landmarks)
-        return start if align == "none" else icp(model.template, model.faces, points, align == "similarity",
-                                                 start=start)
+        return (start if align == "none" else icp(model.template, model.faces, points, align != "rigid",
+                                                  start=start)), None
+    if align == "auto":
+        estimate = estimate_pose(model, scan, seed)
+        return estimate.transform, estimate.summary()
     ratio = np.linalg.norm(np.ptp(points, axis=0)) / np.linalg.norm(np.ptp(model.template, axis=0))
     if align != "similarity" and not 1 / UNIT_MISMATCH_FACTOR < ratio < UNIT_MISMATCH_FACTOR:
         raise StatfitError(f"the scan is {ratio:.3g} times the model's size: are they in different units? "
-                           "Rescale one, or use --align similarity")
+                           "Rescale one, or use --align auto")
     if align == "none":
-        return Similarity()
+        return Similarity(), None
     with_scale = align == "similarity"
     start = initial_guess(model.template, points, with_scale)
     if not with_scale and np.linalg.norm(start.translation) < Frame.of(model.template).scale:
         start = Similarity()
-    return icp(model.template, model.faces, points, with_scale, start=start)
+    return icp(model.template, model.faces, points, with_scale, start=start), None
 
 
-def register(model: StatModel, points: np.ndarray, method: str = "default", *, preset: str = "tuned",
-             align: str = "none", device: str = "cpu", dtype: torch.dtype = torch.float32,
+def register(model: StatModel, points: np.ndarray | Scan, method: str = "default", *, preset: str = "tuned",
+             align: str = "auto", device: str = "cpu", dtype: torch.dtype = torch.float32,
              refresh_every: int = 10, trim: float = 0.05, seed: int = 0,
              on_record: Callable[[int, dict[str, float]], None] | None = None,
              timer: StageTimer | None = None, stages: tuple[Settings, ...] | None = None,
              region: str | None = None, landmarks: np.ndarray | None = None,
              on_snapshot: Callable[[int, np.ndarray], None] | None = None, threads: int | None = None,
              landmark_weight: float = LANDMARK_WEIGHT, **overrides: Any) -> Fit:
-    """Fit ``model`` to the scan ``points`` (M, 3) with ``method``.
+    """Fit ``model`` to the scan ``points`` (M, 3), or a :class:`statfit.scan.Scan` (e.g. drawn
+    from a mesh scan by area), with ``method``.
+
+    ``align``: ``auto`` finds the scan's pose, scale and power-of-ten units without landmarks and
+    leaves a scan that already lies on the model where it is (:mod:`statfit.global_align`; its
+    report is the result's ``pose``); ``none`` takes the scan as lying in the model's frame;
+    ``rigid``/``similarity``: ICP from the centroids.
 
     ``region`` names a stored vertex subset: only scan points whose closest surface point lies on
     the region's triangles enter the data term, while the filter and prior still move every vertex.
@@ -138,7 +153,8 @@ def register(model: StatModel, points: np.ndarray, method: str = "default", *, p
     ``overrides`` (iterations, lr, beta, power, lam, laplacian, solver, mode_gain) replace the
     method's settings; ``stages`` replaces the method altogether by an explicit pipeline. Warns (StatfitWarning) when the scan is far from the model with align='none'.
     """
-    points = check_scan(points)
+    scan = points if isinstance(points, Scan) else Scan.from_points(check_scan(points))
+    points = check_scan(scan.points)
     if not 0 <= trim < 1:
         raise StatfitError(f"trim must lie in [0, 1), got {trim}")
     if refresh_every < 1:
@@ -152,12 +168,18 @@ def register(model: StatModel, points: np.ndarray, method: str = "default", *, p
         started = time.perf_counter()
         region_faces = None if region is None else torch.as_tensor(region_triangles(model, region),
                                                                    device=torch_device)
-        transform = prealign(model, points, align, landmarks)
+        transform, pose = prealign(model, scan, align, landmarks, seed)
+        if pose is not None and pose["ambiguous"]:
+            warnings.warn(f"the scan's pose is ambiguous: the best scores {pose['score']:.3f}, another "
+                          f"{DISTINCT_DEGREES:.0f}° or more away {pose['runner_up']:.3f} (0 best, 1 worst); check the "
+                          "fit, or give --landmarks", StatfitWarning, stacklevel=2)
         frame = Frame.of(model.template)
         space = FitSpace.of(model, frame, torch_device, dtype)
-        scan = torch.as_tensor(frame.to_unit(transform.inverse_apply(points)), dtype=dtype, device=torch_device)
+        fit_points = torch.as_tensor(frame.to_unit(transform.inverse_apply(points)), dtype=dtype, device=torch_device)
+        fit_normals = torch.as_tensor(scan.normals @ transform.rotation, dtype=dtype, device=torch_device)
         query = ClosestPointQuery(model.faces, model.num_vertices, k=2, device=torch_device)
-        objective = ScanObjective(scan, query, refresh_every=refresh_every, trim=trim, region_faces=region_faces)
+        objective = ScanObjective(fit_points, query, refresh_every=refresh_every, trim=trim, region_faces=region_faces,
+                                  normals=fit_normals)
         median = float(objective.refresh(space.mean).distance.median())
         if objective.kept == 0:
             raise StatfitError(f"no scan point lies closest to the region {region!r}: is the scan of another part?")
@@ -178,4 +200,4 @@ def register(model: StatModel, points: np.ndarray, method: str = "default", *, p
         result = run_stages(stages, space, objective, space.mean.clone(), on_record=on_record,
                             on_snapshot=snapshot, timer=timer)
         return Fit(to_scan_frame(result.vertices), transform, stages, result.loss,
-                            time.perf_counter() - started, dict(timer.seconds), result.iterations)
+                            time.perf_counter() - started, dict(timer.seconds), result.iterations, pose)

@@ -24,7 +24,7 @@ class Fit:
     """A job's result: fitted vertices (N, 3) in the input's frame and units; ``transform`` maps the
     model's frame onto it (the pre-alignment: scan for register, camera world for render); the
     stages run, the last stage's loss terms, wall seconds (``stage_seconds`` per part of the loop)
-    and the iterations run in all."""
+    and the iterations run in all; ``pose`` the automatic alignment's report, if one ran."""
 
     vertices: np.ndarray
     transform: Similarity
@@ -33,6 +33,7 @@ class Fit:
     seconds: float
     stage_seconds: dict[str, float] = field(default_factory=dict)
     iterations: int = 0
+    pose: dict | None = None
 
 
 @dataclass

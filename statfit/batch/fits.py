@@ -14,7 +14,7 @@ from statfit import __version__
 from statfit.errors import StatfitError
 from statfit.importers.cache import open_model
 from statfit.inverse_render import reconstruct
-from statfit.io.mesh import mesh_bytes, read_points
+from statfit.io.mesh import load_scan, mesh_bytes
 from statfit.io.normalmap import camera_for_map, read_normal_map
 from statfit.model import StatModel
 from statfit.register import register
@@ -72,8 +72,8 @@ def prepare_worker(max_threads: int | None = None) -> None:
 def _fit(job: FitJob, source: str, model: StatModel) -> tuple[bytes, dict[str, Any]]:
     common = dict(stages=job.stages, device=job.device, threads=job.threads)
     if job.command == "register":
-        result = register(model, read_points(source), **common, **job.options)
-        pose = {"model_to_scan": result.transform.as_matrix().tolist()}
+        result = register(model, load_scan(source), **common, **job.options)
+        pose = {"model_to_scan": result.transform.as_matrix().tolist(), "pose": result.pose}
     elif job.command == "render":
         options = dict(job.options)
         camera_path = options.pop("camera", None)

@@ -12,6 +12,7 @@ import trimesh
 
 from statfit.errors import StatfitError
 from statfit.io.files import existing_file
+from statfit.scan import Scan
 
 MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off")
 # The largest mesh or point-cloud file read, and how much of a file its header may take.
@@ -80,7 +81,11 @@ def _counted(geometry, head: bytes, source: str):
 
 def read_points(source: str | Path) -> np.ndarray:
     """Points (M, 3) of a point cloud or mesh file (a mesh's vertices are its points)."""
-    geometry = _load(source)
+    return _points_of(_load(source), source)
+
+
+def _points_of(geometry, source: str | Path) -> np.ndarray:
+    """The finite vertices (M, 3) of loaded geometry (all parts of a scene)."""
     if isinstance(geometry, trimesh.Scene):
         parts = [g.vertices for g in geometry.geometry.values() if hasattr(g, "vertices")]
         vertices = np.concatenate(parts) if parts else np.zeros((0, 3))
@@ -93,6 +98,19 @@ def read_points(source: str | Path) -> np.ndarray:
     if bad.any():
         raise StatfitError(f"{source} has NaN or infinite coordinates ({int(bad.sum())} points)")
     return vertices
+
+
+def read_scan(source: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """A scan file's points (M, 3) and, for a triangle mesh, its faces (F, 3) (else None)."""
+    geometry = _load(source)
+    is_mesh = isinstance(geometry, trimesh.Trimesh) and len(geometry.faces) > 0
+    return _points_of(geometry, source), np.asarray(geometry.faces, dtype=np.int64) if is_mesh else None
+
+
+def load_scan(source: str | Path, seed: int = 0) -> Scan:
+    """A scan file as the fit takes it: a mesh's points drawn by area, a point cloud's as they are."""
+    points, faces = read_scan(source)
+    return Scan.from_mesh(points, faces, seed) if faces is not None else Scan.from_points(points)
 
 
 def read_mesh(source: str | Path) -> tuple[np.ndarray, np.ndarray]:

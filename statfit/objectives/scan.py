@@ -3,8 +3,14 @@
 Each scan point is attached to its closest point on the current surface (a triangle and
 barycentric coordinates); the residual is ``p − Σ bᵢ x_{tᵢ}``. At a refresh this is exactly the
 point-to-surface distance and its gradient (envelope theorem); between refreshes the attachment
-is held. Robustness: the points whose distance lies above the ``1 − trim`` quantile at a refresh
-are left out until the next one. With a region (a mask over triangles), points are still attached
+is held.
+
+Robustness against what a real scan holds beyond the template (neck, shoulders, hair, background):
+at a refresh a point counts only where it plausibly lies on the template — its closest point is
+not on the template's open boundary (a point beyond the border clamps there), its normal agrees
+with the surface's up to sign (within 60°), and its distance is within OUTLIER_SIGMAS robust
+standard deviations (1.4826 × the median distance of the points left, at least FLOOR) — and then
+the ``1 − trim`` quantile of the farthest is left out too, until the next refresh. With a region (a mask over triangles), points are still attached
 to the closest point of the whole surface, and only those that land on a region triangle count:
 scan points of other parts (hair, shoulders) neither pull the region nor the rest.
 """
@@ -15,12 +21,36 @@ import torch
 from statfit.closest import ClosestPointQuery, SurfacePoints
 
 
+# A point farther than this many robust standard deviations of the distances is not on the template.
+OUTLIER_SIGMAS = 3.0
+# ... unless it is closer than this (fit-frame units: template RMS radii), so a near-perfect fit keeps its points.
+FLOOR = 0.01
+# |cos| between a point's normal and the surface's below which the point is not on the template (60°).
+NORMAL_COSINE = 0.5
+# A barycentric coordinate below this puts the closest point on the opposite edge.
+ON_EDGE = 1e-6
+
+
+def open_edges(faces: torch.Tensor) -> torch.Tensor:
+    """(F, 3) bool: whether the edge opposite each triangle corner is on the mesh's open boundary
+    (used by one triangle only)."""
+    edges = torch.stack([faces[:, [1, 2]], faces[:, [2, 0]], faces[:, [0, 1]]], dim=1).sort(dim=-1).values
+    _, inverse, counts = torch.unique(edges.reshape(-1, 2), dim=0, return_inverse=True, return_counts=True)
+    return (counts[inverse] == 1).view(-1, 3)
+
+
 class ScanObjective:
-    """Mean squared point-to-surface distance of a scan (M, 3) to the mesh, in the fit frame."""
+    """Mean squared point-to-surface distance of a scan (M, 3) to the mesh, in the fit frame;
+    ``normals`` (M, 3) the scan's unit normals (any sign), if known; ``robust`` False counts every
+    point (up to ``trim``): for scans known to hold nothing but the template."""
 
     def __init__(self, points: torch.Tensor, query: ClosestPointQuery, refresh_every: int = 10,
-                 trim: float = 0.05, region_faces: torch.Tensor | None = None):
+                 trim: float = 0.05, region_faces: torch.Tensor | None = None,
+                 normals: torch.Tensor | None = None, robust: bool = True):
         self.points = points
+        self.scan_normals = normals
+        self.robust = robust
+        self.open_edges = open_edges(query.faces) if robust else None
         self.query = query
         self.refresh_every = max(1, refresh_every)
         self.trim = trim
@@ -39,10 +69,18 @@ class ScanObjective:
         self._keep = torch.ones_like(dist, dtype=torch.bool)
         if self.region_faces is not None:
             self._keep = self.region_faces[self.attachment.triangle]
+        a, b, c = vertices.detach().index_select(0, self._corner_ids).view(-1, 3, 3).unbind(dim=1)
+        normals = torch.nn.functional.normalize(torch.linalg.cross(b - a, c - a), dim=-1)   # (M, 3)
+        if self.robust:
+            on_border = self.open_edges[self.attachment.triangle] & (self.attachment.barycentric < ON_EDGE)
+            self._keep &= ~on_border.any(dim=1)
+            if self.scan_normals is not None:
+                self._keep &= (normals * self.scan_normals).sum(dim=-1).abs() >= NORMAL_COSINE
+            if self._keep.any():
+                self._keep &= dist <= max(OUTLIER_SIGMAS * 1.4826 * float(dist[self._keep].median()), FLOOR)
         if self.trim > 0 and self._keep.any():
             self._keep &= dist <= torch.quantile(dist[self._keep], 1.0 - self.trim)
-        a, b, c = vertices.detach().index_select(0, self._corner_ids).view(-1, 3, 3)[self._keep].unbind(dim=1)
-        self._normals = torch.nn.functional.normalize(torch.linalg.cross(b - a, c - a), dim=-1)   # (M', 3)
+        self._normals = normals[self._keep]                                                  # (M', 3)
         return self.attachment
 
     @property

@@ -1,0 +1,273 @@
+"""Automatic pose, scale and units: a scan in any orientation, offset and length unit put onto the model.
+
+Plain ICP from one start finds the nearest local fit, and a smooth head has many (upside down,
+back to front, turned by 90°). So:
+
+1. **Units.** The scale between scan and model is snapped to the power of ten nearest the ratio of
+   their RMS radii (mm, cm, m all differ by one); within a hypothesis the scale stays in
+   [1/SCALE_RANGE, SCALE_RANGE] of that (a person's size, not another unit).
+2. **Hypotheses.** The 60 rotations of the icosahedral group (every rotation is within ~38° of
+   one), each placed so that the side of the model facing the scan's mean normal (the scanner's
+   side) sits on the scan's centroid. Only poses that turn the model's face (+z, by the usual
+   convention) towards the scanner, give or take 15°, go on: the scan is of a face.
+3. **Trimmed point-to-plane ICP**, all hypotheses at once on a subsample of the scan: a point counts
+   only where its normal agrees with the surface's (up to sign) and it is not among the farthest.
+4. **The best few** (distinct by ≥ DISTINCT_DEGREES) are refined against the mean *and its first
+   modes*: ICP alternates with a Gauss–Newton solve for REFINE_MODES coefficients, so a face
+   wider or longer than the mean does not pull the pose.
+5. **Score**: a truncated residual — each point's squared distance capped at TOLERANCE², a point
+   whose normal disagrees counting as the cap — over the cap: 0 is a perfect fit, 1 nothing
+   matched. The runner-up (another pose ≥ DISTINCT_DEGREES away) within AMBIGUITY of the best
+   marks the result ambiguous; too few matched points refuse the scan. A scan that already lies on
+   the model, in its units, scoring within KEEP_FRAME of the best pose, is left where it is.
+
+Everything runs in the model's unit frame (:class:`statfit.frame.Frame`), so no threshold
+depends on units.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from statfit.align import Similarity
+from statfit.closest import ClosestPointQuery
+from statfit.errors import StatfitError
+from statfit.frame import Frame
+from statfit.gauss_newton import fit_coefficients
+from statfit.model import StatModel
+from statfit.objectives.scan import ScanObjective
+from statfit.scan import Scan
+
+HYPOTHESES = Rotation.create_group("I").as_matrix()   # (60, 3, 3)
+SCALE_RANGE = 1.35
+SUBSAMPLE = 300
+ROUNDS = 15
+KEEP = 0.7                 # fraction of the normal-compatible points kept per ICP round (the nearest)
+NORMAL_COSINE = 0.5        # |cos| between scan and surface normals for a point to count (60°)
+TOLERANCE = 0.05           # truncation of the score, model RMS radii (≈ 5 mm on a head)
+REFINED = 3
+REFINE_MODES = 10
+REFINE_ROUNDS = 2
+REFINE_SUBSAMPLE = 1000
+DISTINCT_DEGREES = 30.0
+KEEP_FRAME = 1.05          # the scan as it lies scores within this factor of the best pose: keep it
+AMBIGUITY = 1.15           # runner-up score within this factor of the best: ambiguous
+FACING_MIN = -0.25         # cos between the model's face direction (+z) and the scan's mean normal
+MIN_MATCHED = 0.3          # fewer scan points than this within TOLERANCE: no part of the scan is the model
+
+
+@dataclass(frozen=True)
+class PoseEstimate:
+    """The model→scan ``transform``; ``score`` (truncated residual, 0 best, 1 worst) and
+    ``matched`` (share of scan points within TOLERANCE with agreeing normals) of the best pose;
+    ``runner_up`` the score of the best pose ≥ DISTINCT_DEGREES from it; ``units`` the power of ten
+    taken as the scan's unit relative to the model's."""
+
+    transform: Similarity
+    score: float
+    matched: float
+    runner_up: float
+    units: float
+
+    @property
+    def ambiguous(self) -> bool:
+        return self.runner_up <= AMBIGUITY * self.score
+
+    def summary(self) -> dict:
+        rotation = Rotation.from_matrix(self.transform.rotation)
+        return {"score": round(self.score, 4), "matched": round(self.matched, 4),
+                "runner_up": round(self.runner_up, 4), "ambiguous": self.ambiguous, "units_factor": self.units,
+                "scale": self.transform.scale, "rotation_deg": np.degrees(rotation.as_rotvec()).round(2).tolist(),
+                "translation": self.transform.translation.tolist()}
+
+
+@dataclass
+class _Poses:
+    """H similarities x ↦ s R x + t, as arrays: s (H,), R (H, 3, 3), t (H, 3)."""
+
+    scale: np.ndarray
+    rotation: np.ndarray
+    translation: np.ndarray
+
+    def to_model(self, points: np.ndarray) -> np.ndarray:
+        """Points (M, 3) mapped back by each pose: (H, M, 3)."""
+        return np.einsum("hmi,hij->hmj", points[None] - self.translation[:, None], self.rotation) \
+            / self.scale[:, None, None]
+
+    def pick(self, index: int) -> Similarity:
+        return Similarity(float(self.scale[index]), self.rotation[index], self.translation[index])
+
+
+class _Matcher:
+    """Nearest points and normals on one shape (N, 3) for many scan points in its frame: the
+    nearest vertex's tangent plane (a KD-tree query; ICP's classic approximation of the surface,
+    within a fraction of the vertex spacing of the true distance)."""
+
+    def __init__(self, faces: np.ndarray, vertices: np.ndarray):
+        self.faces = np.asarray(faces)
+        self.query = ClosestPointQuery(faces, len(vertices), k=2)
+        self.set_shape(vertices)
+
+    def set_shape(self, vertices: np.ndarray) -> None:
+        self.vertices = vertices
+        self.tree = cKDTree(vertices)
+        a, b, c = (vertices[self.faces[:, i]] for i in range(3))
+        normals = np.zeros_like(vertices)
+        np.add.at(normals, self.faces.reshape(-1), np.repeat(np.cross(b - a, c - a), 3, axis=0))
+        self.normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+        self.spacing = float(np.linalg.norm(b - a, axis=1).mean())
+
+    def __call__(self, local: np.ndarray, local_normals: np.ndarray) -> tuple[np.ndarray, ...]:
+        """For ``local`` (H, M, 3): nearest vertices and their normals (H, M, 3), distances (H, M)
+        (the tangent plane's, plus how far beyond a vertex spacing the point lies sideways) and
+        whether the normals agree up to sign (H, M)."""
+        _, nearest = self.tree.query(local.reshape(-1, 3))
+        nearest = nearest.reshape(local.shape[:2])
+        surface, normals = self.vertices[nearest], self.normals[nearest]
+        offset = local - surface
+        along = (offset * normals).sum(axis=-1)
+        sideways = np.sqrt(np.maximum((offset * offset).sum(axis=-1) - along**2, 0))
+        distance = np.sqrt(along**2 + np.maximum(sideways - self.spacing, 0) ** 2)
+        agree = np.abs((normals * local_normals).sum(axis=-1)) >= NORMAL_COSINE
+        return surface, normals, distance, agree
+
+
+def _icp(matcher: _Matcher, points: np.ndarray, normals: np.ndarray, poses: _Poses, rounds: int,
+         scale_bounds: tuple[float, float]) -> _Poses:
+    """Trimmed point-to-plane similarity ICP of every pose at once, scale kept within bounds."""
+    for _ in range(rounds):
+        local = poses.to_model(points)
+        surface, surface_normals, distance, agree = matcher(local, np.einsum("mi,hij->hmj", normals, poses.rotation))
+        cut = np.array([np.quantile(d[a], KEEP) if a.sum() > 10 else np.inf for d, a in zip(distance, agree)])
+        weight = (agree & (distance <= cut[:, None])).astype(np.float64)
+        centre = (weight[..., None] * surface).sum(axis=1) / np.maximum(weight.sum(axis=1), 1)[:, None]
+        q, p = surface - centre[:, None], local - centre[:, None]
+        columns = np.concatenate([np.cross(q, surface_normals), surface_normals,
+                                  (surface_normals * q).sum(axis=-1, keepdims=True)], axis=-1)   # (H, M, 7)
+        rhs = ((p - q) * surface_normals).sum(axis=-1)
+        lhs = np.einsum("hmi,hm,hmj->hij", columns, weight, columns)
+        lhs += 1e-9 * np.eye(7) * (np.trace(lhs, axis1=1, axis2=2)[:, None, None] + 1e-12)
+        step = np.linalg.solve(lhs, np.einsum("hmi,hm,hm->hi", columns, weight, rhs)[..., None])[..., 0]
+        step[weight.sum(axis=1) < 10] = 0.0            # too few matches to say where to go: stay
+        step[:, 6] = np.clip(step[:, 6], -0.2, 0.2)    # a linearised scale step is trusted only so far
+        step_rotation = Rotation.from_rotvec(step[:, :3]).as_matrix()
+        step_scale = np.exp(step[:, 6])
+        step_translation = centre + step[:, 3:6] - step_scale[:, None] * np.einsum("hij,hj->hi", step_rotation, centre)
+        poses = _Poses(np.clip(poses.scale * step_scale, *scale_bounds),
+                       np.einsum("hij,hjk->hik", poses.rotation, step_rotation),
+                       poses.scale[:, None] * np.einsum("hij,hj->hi", poses.rotation, step_translation)
+                       + poses.translation)
+    return poses
+
+
+def _score(matcher: _Matcher, points: np.ndarray, normals: np.ndarray, poses: _Poses) -> tuple[np.ndarray, np.ndarray]:
+    """Truncated residual (H,) in [0, 1] and matched share (H,) of each pose."""
+    local = poses.to_model(points)
+    _, _, distance, agree = matcher(local, np.einsum("mi,hij->hmj", normals, poses.rotation))
+    inlier = agree & (distance < TOLERANCE)
+    capped = np.where(agree, np.minimum(distance / TOLERANCE, 1.0) ** 2, 1.0)
+    return capped.mean(axis=1), inlier.mean(axis=1)
+
+
+def _starts(model_unit: np.ndarray, model_normals: np.ndarray, facing: np.ndarray) -> _Poses:
+    """One pose per hypothesis rotation: the model's vertices facing ``facing`` (scan frame)
+    centred on the origin (the scan's centroid)."""
+    count = len(HYPOTHESES)
+    translation = np.empty((count, 3))
+    for h, rotation in enumerate(HYPOTHESES):
+        visible = model_normals @ (rotation.T @ facing) > 0.3
+        translation[h] = -rotation @ model_unit[visible].mean(axis=0)
+    return _Poses(np.ones(count), HYPOTHESES.copy(), translation)
+
+
+def _distinct(poses: _Poses, order: np.ndarray, count: int) -> list[int]:
+    """The first ``count`` poses in ``order`` that differ pairwise by ≥ DISTINCT_DEGREES."""
+    chosen: list[int] = []
+    for index in order:
+        if all(_angle(poses.rotation[index], poses.rotation[other]) >= DISTINCT_DEGREES for other in chosen):
+            chosen.append(int(index))
+        if len(chosen) == count:
+            break
+    return chosen
+
+
+def _angle(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.degrees(Rotation.from_matrix(a.T @ b).magnitude()))
+
+
+def estimate_pose(model: StatModel, scan: Scan, seed: int = 0) -> PoseEstimate:
+    """The similarity that puts ``model`` onto ``scan`` (any rotation, offset and power-of-ten
+    units), found without landmarks; raises StatfitError when no pose matches enough of the scan."""
+    frame = Frame.of(model.template)
+    centroid = scan.points.mean(axis=0)
+    radius = float(np.sqrt(((scan.points - centroid) ** 2).sum(axis=1).mean()))
+    if radius <= 0:
+        raise StatfitError("the scan's points all coincide")
+    units = float(10.0 ** np.round(np.log10(radius / frame.scale)))
+    points = (scan.points - centroid) / (units * frame.scale)
+    rng = np.random.default_rng(seed)
+    few = rng.choice(len(points), min(SUBSAMPLE, len(points)), replace=False)
+    many = rng.choice(len(points), min(REFINE_SUBSAMPLE, len(points)), replace=False)
+
+    mean = frame.to_unit(model.template)
+    matcher = _Matcher(model.faces, mean)
+    facing = scan.normals.mean(axis=0)
+    facing = facing / max(np.linalg.norm(facing), 1e-12)
+    bounds = (1 / SCALE_RANGE, SCALE_RANGE)
+    poses = _icp(matcher, points[few], scan.normals[few], _starts(mean, matcher.normals, facing), ROUNDS, bounds)
+    score, _ = _score(matcher, points[few], scan.normals[few], poses)
+    facing_scanner = poses.rotation[:, :, 2] @ facing > FACING_MIN    # the model's +z (its face) towards the scanner
+    candidates = _distinct(poses, np.argsort(np.where(facing_scanner, score, np.inf)), REFINED)
+
+    basis_t = torch.as_tensor(np.ascontiguousarray(model.basis[:, :REFINE_MODES].T))
+    std = torch.as_tensor(model.std[:REFINE_MODES] / frame.scale)
+    refined = [_refine(matcher, mean, basis_t, std, points[many], scan.normals[many], poses.pick(i), bounds)
+               for i in candidates]
+    best = int(np.argmin([score for _, score, _ in refined]))
+    transform, best_score, matched = refined[best]
+    others = [score for index, (pose, score, _) in enumerate(refined)
+              if index != best and _angle(pose.rotation, transform.rotation) >= DISTINCT_DEGREES]
+    runner_up = min(others, default=1.0)
+    if units == 1.0:   # the scan may already lie on the model: then leave it there
+        in_place = Similarity(1.0, np.eye(3), (frame.center - centroid) / frame.scale)
+        _, in_place_score, in_place_matched = _refine(matcher, mean, basis_t, std, points[many], scan.normals[many],
+                                                      in_place, bounds, move=False)
+        if in_place_score <= KEEP_FRAME * best_score:
+            transform, best_score, matched = in_place, in_place_score, in_place_matched
+    length = units * frame.scale      # unit frames → the scan's: p = length·q + centroid, u = (x − centre)/scale
+    model_to_scan = Similarity(units * transform.scale, transform.rotation,
+                               centroid + length * transform.translation
+                               - units * transform.scale * transform.rotation @ frame.center)
+    estimate = PoseEstimate(model_to_scan, best_score, matched, runner_up, units)
+    if matched < MIN_MATCHED:
+        raise StatfitError(f"the scan does not look like the model anywhere: at best {matched:.0%} of its points lie "
+                           f"within {TOLERANCE * frame.scale:.3g} model units of the surface in any pose (need "
+                           f"{MIN_MATCHED:.0%}); is it a scan of what the model describes?")
+    return estimate
+
+
+def _refine(matcher: _Matcher, mean: np.ndarray, basis_t: torch.Tensor, std: torch.Tensor, points: np.ndarray,
+            normals: np.ndarray, start: Similarity, bounds: tuple[float, float], move: bool = True
+            ) -> tuple[Similarity, float, float]:
+    """``start`` refined against the mean plus its first modes (``basis_t`` (K, 3N) orthonormal,
+    ``std`` (K,) in the unit frame): ICP and a Gauss–Newton coefficient solve, alternated. Returns the pose (model unit
+    frame → scan unit frame), its score and matched share, scored on the shape fitted; ``move``
+    False keeps the pose and fits the modes only."""
+    poses = _Poses(np.array([start.scale]), start.rotation[None], start.translation[None])
+    shape = mean
+    for _ in range(REFINE_ROUNDS):
+        if move:
+            poses = _icp(matcher, points, normals, poses, ROUNDS // 2, bounds)
+        local = torch.as_tensor(poses.to_model(points)[0])
+        objective = ScanObjective(local, matcher.query, trim=1 - KEEP)
+        fitted = fit_coefficients(torch.as_tensor(mean), basis_t, std, objective, torch.as_tensor(shape), 8,
+                                  noise=0.05, levels=1)
+        shape = fitted.vertices.numpy()
+        matcher.set_shape(shape)
+    score, matched = _score(matcher, points, normals, poses)
+    matcher.set_shape(mean)
+    return poses.pick(0), float(score[0]), float(matched[0])
