@@ -15,7 +15,10 @@ back to front, turned by 90°). So:
 4. **The best few** (distinct by ≥ DISTINCT_DEGREES) are refined against the mean *and its first
    modes*: ICP alternates with a Gauss–Newton solve for REFINE_MODES coefficients, so a face
    wider or longer than the mean does not pull the pose.
-5. **Score**: a truncated residual — each point's squared distance capped at TOLERANCE², a point
+5. **Polish.** The best pose is refined once more against every mode, trimming as the fit does
+   (OUTLIER_SIGMAS), on more points: a pose the first modes could not explain is what the fit,
+   which cannot turn the model, would keep.
+6. **Score**: a truncated residual — each point's squared distance capped at TOLERANCE², a point
    whose normal disagrees counting as the cap — over the cap: 0 is a perfect fit, 1 nothing
    matched. The runner-up (another pose ≥ DISTINCT_DEGREES away) within AMBIGUITY of the best
    marks the result ambiguous; too few matched points refuse the scan. A scan that already lies on
@@ -33,7 +36,7 @@ import torch
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from statfit.align import Similarity
+from statfit.align import Similarity, compose
 from statfit.closest import ClosestPointQuery
 from statfit.errors import StatfitError
 from statfit.frame import Frame
@@ -53,6 +56,10 @@ REFINED = 3
 REFINE_MODES = 10
 REFINE_ROUNDS = 2
 REFINE_SUBSAMPLE = 1000
+POLISH_ITERATIONS = 12
+POLISH_SUBSAMPLE = 4000
+POLISH_NOISE = 0.01
+POLISH_TOLERANCE = 0.02    # the polished poses' score: a fit with every mode lies this close, clutter farther
 DISTINCT_DEGREES = 30.0
 KEEP_FRAME = 1.05          # the scan as it lies scores within this factor of the best pose: keep it
 AMBIGUITY = 1.15           # runner-up score within this factor of the best: ambiguous
@@ -65,7 +72,7 @@ class PoseEstimate:
     """The model→scan ``transform``; ``score`` (truncated residual, 0 best, 1 worst) and
     ``matched`` (share of scan points within TOLERANCE with agreeing normals) of the best pose;
     ``runner_up`` the score of the best pose ≥ DISTINCT_DEGREES from it; ``units`` the power of ten
-    taken as the scan's unit relative to the model's."""
+    taken as the scan's unit relative to the model's. ``matched`` counts within POLISH_TOLERANCE."""
 
     transform: Similarity
     score: float
@@ -138,7 +145,8 @@ class _Matcher:
 
 def _icp(matcher: _Matcher, points: np.ndarray, normals: np.ndarray, poses: _Poses, rounds: int,
          scale_bounds: tuple[float, float]) -> _Poses:
-    """Trimmed point-to-plane similarity ICP of every pose at once, scale kept within bounds."""
+    """Trimmed point-to-plane similarity ICP of every pose at once, scale kept within bounds: of the
+    points whose normals agree, the nearest KEEP fraction count."""
     for _ in range(rounds):
         local = poses.to_model(points)
         surface, surface_normals, distance, agree = matcher(local, np.einsum("mi,hij->hmj", normals, poses.rotation))
@@ -164,12 +172,13 @@ def _icp(matcher: _Matcher, points: np.ndarray, normals: np.ndarray, poses: _Pos
     return poses
 
 
-def _score(matcher: _Matcher, points: np.ndarray, normals: np.ndarray, poses: _Poses) -> tuple[np.ndarray, np.ndarray]:
+def _score(matcher: _Matcher, points: np.ndarray, normals: np.ndarray, poses: _Poses, tolerance: float = TOLERANCE
+           ) -> tuple[np.ndarray, np.ndarray]:
     """Truncated residual (H,) in [0, 1] and matched share (H,) of each pose."""
     local = poses.to_model(points)
     _, _, distance, agree = matcher(local, np.einsum("mi,hij->hmj", normals, poses.rotation))
-    inlier = agree & (distance < TOLERANCE)
-    capped = np.where(agree, np.minimum(distance / TOLERANCE, 1.0) ** 2, 1.0)
+    inlier = agree & (distance < tolerance)
+    capped = np.where(agree, np.minimum(distance / tolerance, 1.0) ** 2, 1.0)
     return capped.mean(axis=1), inlier.mean(axis=1)
 
 
@@ -229,13 +238,18 @@ def estimate_pose(model: StatModel, scan: Scan, seed: int = 0) -> PoseEstimate:
                for i in candidates]
     best = int(np.argmin([score for _, score, _ in refined]))
     transform, best_score, matched = refined[best]
+    coarse_matched = matched
     others = [score for index, (pose, score, _) in enumerate(refined)
               if index != best and _angle(pose.rotation, transform.rotation) >= DISTINCT_DEGREES]
     runner_up = min(others, default=1.0)
+    every_mode = (torch.as_tensor(np.ascontiguousarray(model.basis.T)), torch.as_tensor(model.std / frame.scale))
+    polish = rng.choice(len(points), min(POLISH_SUBSAMPLE, len(points)), replace=False)
+    transform, best_score, matched = _polish(matcher, mean, *every_mode, points[polish], scan.normals[polish],
+                                             transform)
     if units == 1.0:   # the scan may already lie on the model: then leave it there
         in_place = Similarity(1.0, np.eye(3), (frame.center - centroid) / frame.scale)
-        _, in_place_score, in_place_matched = _refine(matcher, mean, basis_t, std, points[many], scan.normals[many],
-                                                      in_place, bounds, move=False)
+        _, in_place_score, in_place_matched = _polish(matcher, mean, *every_mode, points[polish],
+                                                      scan.normals[polish], in_place, move=False)
         if in_place_score <= KEEP_FRAME * best_score:
             transform, best_score, matched = in_place, in_place_score, in_place_matched
     length = units * frame.scale      # unit frames → the scan's: p = length·q + centroid, u = (x − centre)/scale
@@ -243,27 +257,25 @@ def estimate_pose(model: StatModel, scan: Scan, seed: int = 0) -> PoseEstimate:
                                centroid + length * transform.translation
                                - units * transform.scale * transform.rotation @ frame.center)
     estimate = PoseEstimate(model_to_scan, best_score, matched, runner_up, units)
-    if matched < MIN_MATCHED:
-        raise StatfitError(f"the scan does not look like the model anywhere: at best {matched:.0%} of its points lie "
+    if coarse_matched < MIN_MATCHED:
+        raise StatfitError(f"the scan does not look like the model anywhere: at best {coarse_matched:.0%} of its points lie "
                            f"within {TOLERANCE * frame.scale:.3g} model units of the surface in any pose (need "
                            f"{MIN_MATCHED:.0%}); is it a scan of what the model describes?")
     return estimate
 
 
 def _refine(matcher: _Matcher, mean: np.ndarray, basis_t: torch.Tensor, std: torch.Tensor, points: np.ndarray,
-            normals: np.ndarray, start: Similarity, bounds: tuple[float, float], move: bool = True
-            ) -> tuple[Similarity, float, float]:
+            normals: np.ndarray, start: Similarity, bounds: tuple[float, float]) -> tuple[Similarity, float, float]:
     """``start`` refined against the mean plus its first modes (``basis_t`` (K, 3N) orthonormal,
-    ``std`` (K,) in the unit frame): ICP and a Gauss–Newton coefficient solve, alternated. Returns the pose (model unit
-    frame → scan unit frame), its score and matched share, scored on the shape fitted; ``move``
-    False keeps the pose and fits the modes only."""
+    ``std`` (K,) in the unit frame): trimmed ICP and a Gauss–Newton coefficient solve, alternated.
+    Returns the pose (model unit frame → scan unit frame), its score and matched share, scored on
+    the shape fitted."""
     poses = _Poses(np.array([start.scale]), start.rotation[None], start.translation[None])
     shape = mean
     for _ in range(REFINE_ROUNDS):
-        if move:
-            poses = _icp(matcher, points, normals, poses, ROUNDS // 2, bounds)
+        poses = _icp(matcher, points, normals, poses, ROUNDS // 2, bounds)
         local = torch.as_tensor(poses.to_model(points)[0])
-        objective = ScanObjective(local, matcher.query, trim=1 - KEEP)
+        objective = ScanObjective(local, matcher.query, trim=1 - KEEP, robust=False)
         fitted = fit_coefficients(torch.as_tensor(mean), basis_t, std, objective, torch.as_tensor(shape), 8,
                                   noise=0.05, levels=1)
         shape = fitted.vertices.numpy()
@@ -271,3 +283,50 @@ def _refine(matcher: _Matcher, mean: np.ndarray, basis_t: torch.Tensor, std: tor
     score, matched = _score(matcher, points, normals, poses)
     matcher.set_shape(mean)
     return poses.pick(0), float(score[0]), float(matched[0])
+
+
+def _polish(matcher: _Matcher, mean: np.ndarray, basis_t: torch.Tensor, std: torch.Tensor, points: np.ndarray,
+            normals: np.ndarray, start: Similarity, move: bool = True
+            ) -> tuple[Similarity, float, float]:
+    """Gauss–Newton on a rigid pose and every coefficient at once (``basis_t`` (K, 3N), ``std``
+    (K,)): the fit's own robust point-to-plane residuals, a Gaussian prior on the coefficients only,
+    the pose updated by a small rigid motion of the scan points each step. The scale is the units'
+    (``start``'s scale is dropped, keeping the scan's centroid in place): a person's size is the
+    model's to explain, by its modes and under its prior; a free scale would trade against them at
+    no cost. ``move`` False holds the pose. Returns the pose (model unit frame → scan unit frame),
+    its score (POLISH_TOLERANCE) and matched share."""
+    middle = start.inverse_apply(points).mean(axis=0)
+    start = Similarity(1.0, start.rotation, start.apply(middle) - start.rotation @ middle)
+    directions = (basis_t * std[:, None]).T.reshape(*mean.shape, len(std))          # (N, 3, K)
+    coefficients = torch.zeros(len(std), dtype=torch.float64)
+    pose, mean_t = start, torch.as_tensor(mean)
+    for _ in range(POLISH_ITERATIONS):
+        local = torch.as_tensor(pose.inverse_apply(points))
+        objective = ScanObjective(local, matcher.query, trim=0.05, normals=torch.as_tensor(normals @ pose.rotation))
+        x = mean_t + directions @ coefficients
+        objective.refresh(x)
+        residuals = objective.residuals(x)
+        count = max(residuals.numel(), 1)
+        jacobian = objective.jacobian(directions)
+        centre = local.mean(dim=0)
+        if move:
+            jacobian = torch.cat([jacobian, objective.pose_jacobian(centre)[:, :6]], dim=1)
+        prior = torch.zeros(jacobian.shape[1], dtype=torch.float64)
+        prior[:len(std)] = POLISH_NOISE**2 / count
+        lhs = jacobian.T @ jacobian / count
+        lhs = lhs + torch.diag(prior + 1e-12 * float(lhs.diagonal().mean()))
+        rhs = jacobian.T @ residuals / count
+        rhs[:len(std)] += prior[:len(std)] * coefficients
+        step = -torch.linalg.solve(lhs, rhs).numpy()
+        coefficients = coefficients + torch.as_tensor(step[:len(std)])
+        if move:
+            rotation = Rotation.from_rotvec(step[len(std):len(std) + 3]).as_matrix()
+            c = centre.numpy()
+            moved = c + step[len(std) + 3:] - rotation @ c          # the scan points' motion: p ↦ R p + moved
+            pose = compose(pose, Similarity(1.0, rotation.T, -rotation.T @ moved))
+    shape = (mean_t + directions @ coefficients).numpy()
+    matcher.set_shape(shape)
+    poses = _Poses(np.array([pose.scale]), pose.rotation[None], pose.translation[None])
+    score, matched = _score(matcher, points, normals, poses, POLISH_TOLERANCE)
+    matcher.set_shape(mean)
+    return pose, float(score[0]), float(matched[0])

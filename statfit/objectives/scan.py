@@ -122,3 +122,10 @@ class ScanObjective:
         weights = self.attachment.barycentric[self._keep][:, :, None, None]
         moved = (corners * weights).sum(dim=1)                                          # (M', 3, K)
         return -(moved * self._normals[..., None]).sum(dim=1)
+
+    def pose_jacobian(self, centre: torch.Tensor) -> torch.Tensor:
+        """∂residuals/∂(ω, t, σ) (M', 7) for the kept scan points moved by a small similarity about
+        ``centre`` (3,): p ↦ p + ω × (p − centre) + t + σ (p − centre), the surface held."""
+        offset = self.points[self._keep] - centre
+        return torch.cat([torch.linalg.cross(offset, self._normals), self._normals,
+                          (offset * self._normals).sum(dim=-1, keepdim=True)], dim=-1)
