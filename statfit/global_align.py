@@ -21,7 +21,8 @@ back to front, turned by 90°). So:
 6. **Score**: a truncated residual — each point's squared distance capped at TOLERANCE², a point
    whose normal disagrees counting as the cap — over the cap: 0 is a perfect fit, 1 nothing
    matched. The runner-up (another pose ≥ DISTINCT_DEGREES away) within AMBIGUITY of the best
-   marks the result ambiguous; too few matched points refuse the scan. A scan that already lies on
+   marks the result ambiguous; too few matched points, or a fit that needs implausible
+   coefficients (a sphere, a plane), refuse the scan. A scan that already lies on
    the model, in its units, scoring within KEEP_FRAME of the best pose, is left where it is.
 
 Everything runs in the model's unit frame (:class:`statfit.frame.Frame`), so no threshold
@@ -64,6 +65,8 @@ DISTINCT_DEGREES = 30.0
 KEEP_FRAME = 1.05          # the scan as it lies scores within this factor of the best pose: keep it
 AMBIGUITY = 1.15           # runner-up score within this factor of the best: ambiguous
 FACING_MIN = -0.25         # cos between the model's face direction (+z) and the scan's mean normal
+IMPLAUSIBLE_RMS = 2.5       # coefficients (std-devs) no scan of a face needs, on average ...
+IMPLAUSIBLE_COEFFICIENT = 8.0  # ... or for one mode (a chance of ~1e-15 under the model)
 MIN_MATCHED = 0.3          # fewer scan points than this within TOLERANCE: no part of the scan is the model
 
 
@@ -244,24 +247,38 @@ def estimate_pose(model: StatModel, scan: Scan, seed: int = 0) -> PoseEstimate:
     runner_up = min(others, default=1.0)
     every_mode = (torch.as_tensor(np.ascontiguousarray(model.basis.T)), torch.as_tensor(model.std / frame.scale))
     polish = rng.choice(len(points), min(POLISH_SUBSAMPLE, len(points)), replace=False)
-    transform, best_score, matched = _polish(matcher, mean, *every_mode, points[polish], scan.normals[polish],
-                                             transform)
+    transform, best_score, matched, coefficients = _polish(matcher, mean, *every_mode, points[polish],
+                                                           scan.normals[polish], transform)
     if units == 1.0:   # the scan may already lie on the model: then leave it there
         in_place = Similarity(1.0, np.eye(3), (frame.center - centroid) / frame.scale)
-        _, in_place_score, in_place_matched = _polish(matcher, mean, *every_mode, points[polish],
-                                                      scan.normals[polish], in_place, move=False)
+        _, in_place_score, in_place_matched, in_place_coefficients = _polish(
+            matcher, mean, *every_mode, points[polish], scan.normals[polish], in_place, move=False)
         if in_place_score <= KEEP_FRAME * best_score:
-            transform, best_score, matched = in_place, in_place_score, in_place_matched
+            transform, best_score, matched, coefficients = in_place, in_place_score, in_place_matched, \
+                in_place_coefficients
+    _check_plausible(coarse_matched, coefficients, TOLERANCE * frame.scale)
     length = units * frame.scale      # unit frames → the scan's: p = length·q + centroid, u = (x − centre)/scale
     model_to_scan = Similarity(units * transform.scale, transform.rotation,
                                centroid + length * transform.translation
                                - units * transform.scale * transform.rotation @ frame.center)
     estimate = PoseEstimate(model_to_scan, best_score, matched, runner_up, units)
-    if coarse_matched < MIN_MATCHED:
-        raise StatfitError(f"the scan does not look like the model anywhere: at best {coarse_matched:.0%} of its points lie "
-                           f"within {TOLERANCE * frame.scale:.3g} model units of the surface in any pose (need "
-                           f"{MIN_MATCHED:.0%}); is it a scan of what the model describes?")
     return estimate
+
+
+def _check_plausible(matched: float, coefficients: np.ndarray, tolerance: float) -> None:
+    """Refuse a scan that nothing of the model matches, or only a shape far outside the model:
+    fewer than MIN_MATCHED of its points near the first modes' best fit, or the best fit with every
+    mode needing coefficients beyond IMPLAUSIBLE_COEFFICIENT (a sphere, a plane: 3–9 std-devs on
+    average, some beyond 9; a face: about 1, none beyond 4)."""
+    if matched < MIN_MATCHED:
+        raise StatfitError(f"the scan does not look like the model anywhere: at best {matched:.0%} of its points lie "
+                           f"within {tolerance:.3g} model units of the surface in any pose (need {MIN_MATCHED:.0%}); "
+                           "is it a scan of what the model describes?")
+    rms, largest = float(np.sqrt(np.mean(coefficients**2))), float(np.abs(coefficients).max())
+    if rms > IMPLAUSIBLE_RMS or largest > IMPLAUSIBLE_COEFFICIENT:
+        raise StatfitError(f"the scan does not look like the model's shape: its best fit needs coefficients of "
+                           f"{rms:.1f} standard deviations on average and {largest:.1f} at most, where a scan of what the model "
+                           "describes needs about 1 (if it is one, place it with --landmarks)")
 
 
 def _refine(matcher: _Matcher, mean: np.ndarray, basis_t: torch.Tensor, std: torch.Tensor, points: np.ndarray,
@@ -287,14 +304,14 @@ def _refine(matcher: _Matcher, mean: np.ndarray, basis_t: torch.Tensor, std: tor
 
 def _polish(matcher: _Matcher, mean: np.ndarray, basis_t: torch.Tensor, std: torch.Tensor, points: np.ndarray,
             normals: np.ndarray, start: Similarity, move: bool = True
-            ) -> tuple[Similarity, float, float]:
+            ) -> tuple[Similarity, float, float, np.ndarray]:
     """Gauss–Newton on a rigid pose and every coefficient at once (``basis_t`` (K, 3N), ``std``
     (K,)): the fit's own robust point-to-plane residuals, a Gaussian prior on the coefficients only,
     the pose updated by a small rigid motion of the scan points each step. The scale is the units'
     (``start``'s scale is dropped, keeping the scan's centroid in place): a person's size is the
     model's to explain, by its modes and under its prior; a free scale would trade against them at
     no cost. ``move`` False holds the pose. Returns the pose (model unit frame → scan unit frame),
-    its score (POLISH_TOLERANCE) and matched share."""
+    its score (POLISH_TOLERANCE), matched share and the coefficients (K,) in standard deviations."""
     middle = start.inverse_apply(points).mean(axis=0)
     start = Similarity(1.0, start.rotation, start.apply(middle) - start.rotation @ middle)
     directions = (basis_t * std[:, None]).T.reshape(*mean.shape, len(std))          # (N, 3, K)
@@ -329,4 +346,4 @@ def _polish(matcher: _Matcher, mean: np.ndarray, basis_t: torch.Tensor, std: tor
     poses = _Poses(np.array([pose.scale]), pose.rotation[None], pose.translation[None])
     score, matched = _score(matcher, points, normals, poses, POLISH_TOLERANCE)
     matcher.set_shape(mean)
-    return pose, float(score[0]), float(matched[0])
+    return pose, float(score[0]), float(matched[0]), coefficients.numpy()

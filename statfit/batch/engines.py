@@ -108,14 +108,19 @@ class DaskPool:
 
     def __init__(self, address: str, workers: int, max_threads: int | None = None):
         try:
+            import dask
             from distributed import Client, LocalCluster
         except ImportError:
             raise StatfitError('Dask is not installed; pip install "statfit[dask]"') from None
         self._cluster = None
         try:
             if address == "local":
-                self._cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                             dashboard_address=None, silence_logs=logging.ERROR)
+                # Dask starts workers with OMP/MKL/OPENBLAS_NUM_THREADS=1, which changes which BLAS
+                # kernels run (and so the last bits of a fit); statfit picks its threads itself, so its
+                # workers keep this process's environment, as the local pool's do.
+                with dask.config.set({"distributed.nanny.pre-spawn-environ": {"MALLOC_TRIM_THRESHOLD_": 65536}}):
+                    self._cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                                 dashboard_address=None, silence_logs=logging.ERROR)
                 self._client = Client(self._cluster)
             else:
                 self._client = Client(address, timeout="20s")
