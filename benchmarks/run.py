@@ -8,7 +8,8 @@ method), peers (largesteps, trimesh's non-rigid ICP, pycpd on the same scans), e
 CLI jobs per method, with peak memory), inpainting (texture inpainting per-step time at 1024²),
 register_speed (default / fast / pca seconds on 1, 2 and the chosen thread count, quiet and with a
 busy core, beside their errors on the nine study cases), batch (the batch engine's throughput against
-one-by-one registration, its overhead per fit, and the manifest at 10,000 inputs with kills).
+one-by-one registration, its overhead per fit, and the manifest at 10,000 inputs with kills), real_scans
+(realistic ICT scans in any pose and unit: the automatic pose against landmarks, and clutter).
 ``--only`` with parts of the list rewrites only those sections of an existing report (each marked
 as regenerated alone). ``--quick`` runs small sizes and few iterations (a few minutes on 2 cores): it checks that everything
 runs; its numbers are not the ones to quote. Raw numbers go to benchmarks/results/<part>[_quick].json.
@@ -26,8 +27,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import ICT_MODEL, ROOT, Section, machine, save_json  # noqa: E402
 
-PARTS = ("filter_scaling", "convergence", "peers", "end_to_end", "inpainting", "register_speed", "batch")
-NEEDS_ICT = ("convergence", "peers", "end_to_end", "register_speed")
+PARTS = ("filter_scaling", "convergence", "peers", "end_to_end", "inpainting", "register_speed", "batch",
+         "real_scans")
+NEEDS_ICT = ("convergence", "peers", "end_to_end", "register_speed", "real_scans")
 
 
 def run_part(name: str, quick: bool, device: str, image_dir: Path) -> Section:

@@ -32,9 +32,10 @@ from statfit.model import StatModel, region_vertices
 from statfit.objectives.normals import SILHOUETTE_WEIGHT
 from statfit.register import resolve_device
 from statfit.threads import available_cores
-from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, KOption, LamOption, LaplacianOption,
-                                LrOption, MethodOption, ModeGainOption, ModelOption, PowerOption, PresetOption,
-                                QuietOption, SeedOption, PROGRESS_LINE_SECONDS, setting_overrides, stderr, within)
+from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, IterationsOption, KOption, LamOption,
+                                LaplacianOption, LrOption, MethodOption, ModeGainOption, ModelOption, PowerOption,
+                                PresetOption, QuietOption, SeedOption, PROGRESS_LINE_SECONDS, clutter_choice,
+                                setting_overrides, stderr, within)
 
 app = typer.Typer(help="Fit datasets: many inputs, resumable, on local processes or a Dask cluster. "
                   "Exit codes: 0 every input done, 1 some failed (see `statfit batch status`), 2 the batch "
@@ -217,6 +218,7 @@ def batch_register(
     refresh: int = typer.Option(10, help="Recompute closest surface points every N iterations.",
                                 callback=within(1, 100_000)),
     trim: float = typer.Option(0.05, help="Fraction of farthest scan points ignored.", callback=within(0, 0.99)),
+    clutter: str = ClutterOption,
     device: str = DeviceOption,
     threads: int = BatchThreadsOption,
     seed: int = SeedOption,
@@ -250,7 +252,7 @@ def batch_register(
         region_vertices(model, region)
     items = _prepared(inputs, out_dir)
     job = FitJob("register", model_file, k, stages, dict(align=align, region=region, refresh_every=refresh,
-                                                         trim=trim, seed=seed),
+                                                         trim=trim, seed=seed, clutter=clutter_choice(clutter)),
                  threads=threads, device=str(resolve_device(device)), model_digest=digest)
     _run(items, job, out_dir, workers, scheduler, cluster, timeout, force, quiet, json_out)
 

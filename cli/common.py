@@ -133,3 +133,17 @@ def progress_bar(total: int, label: str, enabled: bool):
             progress.update(task, completed=iteration + 1, loss=f"{terms.get('total', float('nan')):.3g}")
 
         yield advance
+
+
+CLUTTER_CHOICES = {"auto": None, "on": True, "off": False}
+ClutterOption = typer.Option("auto", help="Rules for scan points off the template (hair, shoulders, background): a "
+                             "point counts only if its normal agrees with the surface's and it is not far beyond the "
+                             "others. auto: on when the alignment finds points no shape of the model explains "
+                             "(--align auto); on; off. Points beyond the template's open border never count.")
+
+
+def clutter_choice(value: str) -> bool | None:
+    """--clutter auto|on|off as register()'s ``clutter``."""
+    if value not in CLUTTER_CHOICES:
+        raise StatfitError(f"unknown --clutter {value!r}; choose auto, on or off")
+    return CLUTTER_CHOICES[value]

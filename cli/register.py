@@ -12,10 +12,10 @@ from statfit.io.landmarks import read_landmarks
 from statfit.methods import resolve
 from statfit.register import LANDMARK_WEIGHT, register as fit_scan, resolve_device
 from statfit.importers.cache import open_model
-from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
-                                LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
-                                PowerOption, PresetOption, QuietOption, SeedOption, ThreadsOption, setting_overrides,
-                                within)
+from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, IterationsOption, JsonOption, KOption,
+                                LamOption, LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption,
+                                ModelOption, PowerOption, PresetOption, QuietOption, SeedOption, ThreadsOption,
+                                clutter_choice, setting_overrides, within)
 from statfit_cli.runner import finish, fit_run
 
 
@@ -45,6 +45,7 @@ def register(
                                           "squared distance (robust: beyond ~5% of the model's radius off its place, a "
                                           "landmark pulls less the farther it is); 0: the start only.",
                                           callback=within(0, 1e6)),
+    clutter: str = ClutterOption,
     device: str = DeviceOption,
     threads: int = ThreadsOption,
     seed: int = SeedOption,
@@ -93,12 +94,14 @@ def register(
     header = dict(method=method, preset=preset, stages=[s.describe() for s in stages], model=model.source,
                   modes=model.num_modes, input=scan, points=len(points.points), align=align, device=str(torch_device),
                   threads=threads, seed=seed, refresh=refresh, trim=trim, region=region,
-                  landmarks=str(landmarks) if landmarks else None, landmark_weight=landmark_weight)
+                  landmarks=str(landmarks) if landmarks else None, landmark_weight=landmark_weight,
+                  clutter=clutter)
     label = Path(scan).name if scan != "-" else "stdin"
     with fit_run("register", log, label, sum(s.iterations for s in stages), quiet, **header) as run:
         result = fit_scan(model, points, stages=stages, align=align, device=str(torch_device),
                           refresh_every=refresh, trim=trim, seed=seed, on_record=run.on_record,
-                          region=region, landmarks=scan_landmarks, landmark_weight=landmark_weight, threads=threads)
+                          region=region, landmarks=scan_landmarks, landmark_weight=landmark_weight, threads=threads,
+                          clutter=clutter_choice(clutter))
     summary = {"input": scan, "output": target, "method": method, "iterations": result.iterations,
                "final_loss": result.loss, "seconds": result.seconds,
                "stage_seconds": result.stage_seconds, "model_to_scan": result.transform.as_matrix().tolist(),

@@ -251,11 +251,10 @@ def estimate_pose(model: StatModel, scan: Scan, seed: int = 0) -> PoseEstimate:
                                                            scan.normals[polish], transform)
     if units == 1.0:   # the scan may already lie on the model: then leave it there
         in_place = Similarity(1.0, np.eye(3), (frame.center - centroid) / frame.scale)
-        _, in_place_score, in_place_matched, in_place_coefficients = _polish(
+        _, in_place_score, in_place_matched, _ = _polish(
             matcher, mean, *every_mode, points[polish], scan.normals[polish], in_place, move=False)
         if in_place_score <= KEEP_FRAME * best_score:
-            transform, best_score, matched, coefficients = in_place, in_place_score, in_place_matched, \
-                in_place_coefficients
+            transform, best_score, matched, coefficients = in_place, in_place_score, in_place_matched, None
     _check_plausible(coarse_matched, coefficients, TOLERANCE * frame.scale)
     length = units * frame.scale      # unit frames → the scan's: p = length·q + centroid, u = (x − centre)/scale
     model_to_scan = Similarity(units * transform.scale, transform.rotation,
@@ -265,15 +264,18 @@ def estimate_pose(model: StatModel, scan: Scan, seed: int = 0) -> PoseEstimate:
     return estimate
 
 
-def _check_plausible(matched: float, coefficients: np.ndarray, tolerance: float) -> None:
+def _check_plausible(matched: float, coefficients: np.ndarray | None, tolerance: float) -> None:
     """Refuse a scan that nothing of the model matches, or only a shape far outside the model:
     fewer than MIN_MATCHED of its points near the first modes' best fit, or the best fit with every
     mode needing coefficients beyond IMPLAUSIBLE_COEFFICIENT (a sphere, a plane: 3–9 std-devs on
-    average, some beyond 9; a face: about 1, none beyond 4)."""
+    average, some beyond 9; a face: about 1, none beyond 4). ``coefficients`` None (a scan that
+    already lies on the model, where heavy clutter can ask for large ones): the first test only."""
     if matched < MIN_MATCHED:
         raise StatfitError(f"the scan does not look like the model anywhere: at best {matched:.0%} of its points lie "
                            f"within {tolerance:.3g} model units of the surface in any pose (need {MIN_MATCHED:.0%}); "
                            "is it a scan of what the model describes?")
+    if coefficients is None:
+        return
     rms, largest = float(np.sqrt(np.mean(coefficients**2))), float(np.abs(coefficients).max())
     if rms > IMPLAUSIBLE_RMS or largest > IMPLAUSIBLE_COEFFICIENT:
         raise StatfitError(f"the scan does not look like the model's shape: its best fit needs coefficients of "
@@ -292,7 +294,7 @@ def _refine(matcher: _Matcher, mean: np.ndarray, basis_t: torch.Tensor, std: tor
     for _ in range(REFINE_ROUNDS):
         poses = _icp(matcher, points, normals, poses, ROUNDS // 2, bounds)
         local = torch.as_tensor(poses.to_model(points)[0])
-        objective = ScanObjective(local, matcher.query, trim=1 - KEEP, robust=False)
+        objective = ScanObjective(local, matcher.query, trim=1 - KEEP)
         fitted = fit_coefficients(torch.as_tensor(mean), basis_t, std, objective, torch.as_tensor(shape), 8,
                                   noise=0.05, levels=1)
         shape = fitted.vertices.numpy()
@@ -319,7 +321,8 @@ def _polish(matcher: _Matcher, mean: np.ndarray, basis_t: torch.Tensor, std: tor
     pose, mean_t = start, torch.as_tensor(mean)
     for _ in range(POLISH_ITERATIONS):
         local = torch.as_tensor(pose.inverse_apply(points))
-        objective = ScanObjective(local, matcher.query, trim=0.05, normals=torch.as_tensor(normals @ pose.rotation))
+        objective = ScanObjective(local, matcher.query, trim=0.05, normals=torch.as_tensor(normals @ pose.rotation),
+                                  clutter=True)
         x = mean_t + directions @ coefficients
         objective.refresh(x)
         residuals = objective.residuals(x)

@@ -31,6 +31,10 @@ IMPLAUSIBLE_COORDINATE = 1e9
 # Median scan-to-template distance (in model RMS radii) above which the scan is "far" from the model.
 FAR_DISTANCE = 0.25
 ROBUST_ALIGNMENT_ROUNDS = 10
+# Share of the scan's points the pose search's fit with every mode explains (within 2% of the
+# radius) below which the scan holds clutter: clean ICT study scans ≥ 0.91, scans with hair, neck and
+# shoulders worth 50% of the face's points ≤ 0.82 (docs/method.md, "Real scans").
+CLUTTER_MATCHED = 0.87
 # Weight of the landmark term against the scan's mean squared distance (docs/studies.md §12).
 LANDMARK_WEIGHT = 10.0
 
@@ -100,15 +104,14 @@ def prealign(model: StatModel, scan: Scan, align: str, landmarks: np.ndarray | N
              ) -> tuple[Similarity, dict | None]:
     """The model→scan transform for ``align`` in auto|none|rigid|similarity, and for auto the
     pose search's report (:mod:`statfit.global_align`); checks units first. With ``landmarks``
-    (L, 3), the landmark similarity is the start (and, with align none, the result; auto then
-    refines it as similarity does)."""
+    (L, 3), the landmark similarity is the start (and, with align auto or none, the result)."""
     if align not in ALIGNMENTS:
         raise StatfitError(f"unknown alignment {align!r}; choose one of {', '.join(ALIGNMENTS)}")
     points = scan.points
     if landmarks is not None:
         start = landmark_alignment(model, landmarks)
-        return (start if align == "none" else icp(model.template, model.faces, points, align != "rigid",
-                                                  start=start)), None
+        return (start if align in ("none", "auto") else icp(model.template, model.faces, points,
+                                                            align == "similarity", start=start)), None
     if align == "auto":
         estimate = estimate_pose(model, scan, seed)
         return estimate.transform, estimate.summary()
@@ -132,7 +135,7 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
              timer: StageTimer | None = None, stages: tuple[Settings, ...] | None = None,
              region: str | None = None, landmarks: np.ndarray | None = None,
              on_snapshot: Callable[[int, np.ndarray], None] | None = None, threads: int | None = None,
-             landmark_weight: float = LANDMARK_WEIGHT, **overrides: Any) -> Fit:
+             landmark_weight: float = LANDMARK_WEIGHT, clutter: bool | None = None, **overrides: Any) -> Fit:
     """Fit ``model`` to the scan ``points`` (M, 3), or a :class:`statfit.scan.Scan` (e.g. drawn
     from a mesh scan by area), with ``method``.
 
@@ -146,6 +149,9 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
     ``landmarks`` (L, 3), the scan's points for the model's landmarks (NaN = missing), pre-align the
     scan by a similarity first (refined by ICP when ``align`` is rigid or similarity), then stay a
     fit term of ``landmark_weight`` (0: the start only; :mod:`statfit.objectives.landmarks`).
+    ``clutter`` turns on the data term's rules for points off the template (normals, robust
+    distance; :mod:`statfit.objectives.scan`); ``None``: on when the automatic alignment found more
+    than 1 − CLUTTER_MATCHED of the points unexplained by its fit with every mode.
     ``on_snapshot(iteration, vertices)`` receives the current vertices (N, 3), in the scan's frame,
     every 10 iterations (e.g. to trace the error against a ground truth). ``threads``: torch
     intra-op threads for the fit (default: chosen from the model's size, :mod:`statfit.threads`).
@@ -178,8 +184,12 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
         fit_points = torch.as_tensor(frame.to_unit(transform.inverse_apply(points)), dtype=dtype, device=torch_device)
         fit_normals = torch.as_tensor(scan.normals @ transform.rotation, dtype=dtype, device=torch_device)
         query = ClosestPointQuery(model.faces, model.num_vertices, k=2, device=torch_device)
+        if clutter is None:   # the pose search found points no shape of the model explains
+            clutter = pose is not None and pose["matched"] < CLUTTER_MATCHED
+        if pose is not None:
+            pose = {**pose, "clutter_rules": clutter}
         objective = ScanObjective(fit_points, query, refresh_every=refresh_every, trim=trim, region_faces=region_faces,
-                                  normals=fit_normals)
+                                  normals=fit_normals, clutter=clutter)
         median = float(objective.refresh(space.mean).distance.median())
         if objective.kept == 0:
             raise StatfitError(f"no scan point lies closest to the region {region!r}: is the scan of another part?")

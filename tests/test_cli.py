@@ -138,7 +138,7 @@ BAD_INPUTS = {
     "missing model": lambda t, s: ["register", str(s), "--model", str(t / "none.npz")],
     "unwritable output": lambda t, s: ["register", str(s), "--out", "/proc/forbidden/fit.ply"],
     "missing output folder": lambda t, s: ["register", str(s), "--out", str(t / "no" / "fit.ply")],
-    "unit mismatch": lambda t, s: ["register", str(far_units(s, t / "mm.ply"))],
+    "unit mismatch": lambda t, s: ["register", str(far_units(s, t / "mm.ply")), "--align", "none"],
     "unknown option": lambda t, s: ["register", str(s), "--frobnicate"],
     "eval of different topologies": lambda t, s: ["eval", str(s), str(s)],
     "bad k": lambda t, s: ["register", str(s), "--k", "0"],
@@ -176,7 +176,7 @@ def test_far_scan_warns_but_fits(scan_files, tmp_path, capsys):
     scan, _ = scan_files
     shifted = tmp_path / "shifted.ply"
     trimesh.PointCloud(trimesh.load(scan).vertices + [0.1, 0.0, 0.0]).export(shifted)
-    code, _, err = run(["register", str(shifted), "--out", str(tmp_path / "f.ply"), *FAST], capsys)
+    code, _, err = run(["register", str(shifted), "--out", str(tmp_path / "f.ply"), "--align", "none", *FAST], capsys)
     assert code == 0 and "statfit: warning: the scan is far from the model" in err
 
 

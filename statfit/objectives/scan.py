@@ -6,11 +6,13 @@ point-to-surface distance and its gradient (envelope theorem); between refreshes
 is held.
 
 Robustness against what a real scan holds beyond the template (neck, shoulders, hair, background):
-at a refresh a point counts only where it plausibly lies on the template — its closest point is
-not on the template's open boundary (a point beyond the border clamps there), its normal agrees
-with the surface's up to sign (within 60°), and its distance is within OUTLIER_SIGMAS robust
-standard deviations (1.4826 × the median distance of the points left, at least FLOOR) — and then
-the ``1 − trim`` quantile of the farthest is left out too, until the next refresh. With a region (a mask over triangles), points are still attached
+at a refresh a point counts only where its closest point is not on the template's open boundary (a
+point beyond the border clamps there); with ``clutter``, also only where its normal agrees with the
+surface's up to sign (within 60°) and its distance is within OUTLIER_SIGMAS robust standard
+deviations (1.4826 × the median distance of the points left, at least FLOOR). Then the ``1 − trim``
+quantile of the farthest is left out too, until the next refresh. The clutter rules cost a fit of a
+clean scan with a large expression (the expression's points are far at first, like clutter: +23% on
+the ICT jaw-open case), so they are for scans that hold clutter (:mod:`statfit.register`). With a region (a mask over triangles), points are still attached
 to the closest point of the whole surface, and only those that land on a region triangle count:
 scan points of other parts (hair, shoulders) neither pull the region nor the rest.
 """
@@ -41,16 +43,16 @@ def open_edges(faces: torch.Tensor) -> torch.Tensor:
 
 class ScanObjective:
     """Mean squared point-to-surface distance of a scan (M, 3) to the mesh, in the fit frame;
-    ``normals`` (M, 3) the scan's unit normals (any sign), if known; ``robust`` False counts every
-    point (up to ``trim``): for scans known to hold nothing but the template."""
+    ``normals`` (M, 3) the scan's unit normals (any sign), if known; ``clutter`` turns on the rules
+    for points that are not on the template (module docstring)."""
 
     def __init__(self, points: torch.Tensor, query: ClosestPointQuery, refresh_every: int = 10,
                  trim: float = 0.05, region_faces: torch.Tensor | None = None,
-                 normals: torch.Tensor | None = None, robust: bool = True):
+                 normals: torch.Tensor | None = None, clutter: bool = False):
         self.points = points
         self.scan_normals = normals
-        self.robust = robust
-        self.open_edges = open_edges(query.faces) if robust else None
+        self.clutter = clutter
+        self.open_edges = open_edges(query.faces)
         self.query = query
         self.refresh_every = max(1, refresh_every)
         self.trim = trim
@@ -71,9 +73,9 @@ class ScanObjective:
             self._keep = self.region_faces[self.attachment.triangle]
         a, b, c = vertices.detach().index_select(0, self._corner_ids).view(-1, 3, 3).unbind(dim=1)
         normals = torch.nn.functional.normalize(torch.linalg.cross(b - a, c - a), dim=-1)   # (M, 3)
-        if self.robust:
-            on_border = self.open_edges[self.attachment.triangle] & (self.attachment.barycentric < ON_EDGE)
-            self._keep &= ~on_border.any(dim=1)
+        on_border = self.open_edges[self.attachment.triangle] & (self.attachment.barycentric < ON_EDGE)
+        self._keep &= ~on_border.any(dim=1)
+        if self.clutter:
             if self.scan_normals is not None:
                 self._keep &= (normals * self.scan_normals).sum(dim=-1).abs() >= NORMAL_COSINE
             if self._keep.any():

@@ -1,0 +1,190 @@
+"""Real scans: the simulated range scanner, mesh scans sampled by area, normals, clutter left out
+of the data term, the automatic pose search, and the scans it must refuse."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from statfit.closest import ClosestPointQuery
+from statfit.errors import StatfitError
+from statfit.global_align import estimate_pose
+from statfit.io.landmarks import read_landmarks
+from statfit.io.mesh import read_mesh
+from statfit.objectives.scan import ScanObjective, open_edges
+from statfit.metrics import surface_distance
+from statfit.register import register
+from statfit.scan import Scan, estimate_normals
+from statfit.scanner import neck_tube, realistic_scan
+from statfit.synth import scan_from_view
+
+from conftest import run_cli
+
+
+def _angle(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(a.T @ b) - 1) / 2, -1, 1))))
+
+
+def test_realistic_scan_holds_the_shape_clutter_as_asked_and_its_pose(embedded_model):
+    model = embedded_model
+    shape = model.sample(np.random.default_rng(0))
+    scan = realistic_scan(shape, model.faces, np.random.default_rng(1), clutter=0.5, units="mm", noise=0.0)
+    assert scan.clutter_ratio == pytest.approx(0.5, abs=0.05)
+    assert np.allclose(scan.truth, scan.transform.apply(shape))
+    assert scan.transform.scale == pytest.approx(1000.0)           # the model is in metres, the scan in mm
+    assert np.allclose(scan.transform.rotation @ scan.transform.rotation.T, np.eye(3), atol=1e-12)
+    on_distance = surface_distance(scan.vertices[scan.on_shape], scan.truth, model.faces)
+    off_distance = surface_distance(scan.vertices[~scan.on_shape], scan.truth, model.faces)
+    assert on_distance.max() < 1e-6 * scan.transform.scale         # noise-free: the shape's points lie on it
+    assert np.median(off_distance) > 5.0                           # clutter lies off it (mm)
+    # the scan is a mesh of the grid's hits, wound towards the viewer
+    assert len(scan.faces) > len(scan.vertices)
+    clean = realistic_scan(shape, model.faces, np.random.default_rng(1), clutter=0.0, posed=False, units="m")
+    assert clean.on_shape.all() and np.allclose(clean.truth, shape)
+
+
+def test_synth_scan_realistic_writes_a_mesh_its_truth_and_landmarks(tmp_path):
+    scan, gt, marks = tmp_path / "scan.ply", tmp_path / "gt.ply", tmp_path / "marks.txt"
+    code, err = run_cli(["synth", "scan", "--realistic", "--seed", "4", "--units", "cm", "--out", str(scan), "--gt",
+                         str(gt), "--landmarks-out", str(marks)])
+    assert code == 0, err
+    vertices, faces = read_mesh(scan)
+    truth, _ = read_mesh(gt)
+    from statfit.model import default_model_path, load_model
+    model = load_model(default_model_path())
+    assert np.allclose(read_landmarks(marks), truth[model.landmarks])
+    assert np.ptp(truth, axis=0).max() == pytest.approx(100 * np.ptp(model.template, axis=0).max(), rel=0.3)
+    code, err = run_cli(["synth", "scan", "--realistic", "--outliers", "0.1", "--out", str(tmp_path / "x.ply")])
+    assert code == 2 and "--clutter" in err and not (tmp_path / "x.ply").exists()
+
+
+def test_mesh_scans_are_sampled_by_area_not_by_vertex_density():
+    # a unit square in z = 0: the left half cut into 32×32 cells, the right half into one cell
+    def grid(x0: float, cells: int) -> trimesh.Trimesh:
+        u, v = np.meshgrid(np.linspace(x0, x0 + 0.5, cells + 1), np.linspace(0, 1, cells + 1), indexing="ij")
+        i, j = np.meshgrid(np.arange(cells), np.arange(cells), indexing="ij")
+        a = (i * (cells + 1) + j).ravel()
+        faces = np.concatenate([np.stack([a, a + cells + 1, a + 1], 1), np.stack([a + 1, a + cells + 1, a + cells + 2], 1)])
+        return trimesh.Trimesh(np.stack([u.ravel(), v.ravel(), np.zeros(u.size)], 1), faces, process=False)
+
+    mesh = trimesh.util.concatenate([grid(0.0, 32), grid(0.5, 1)])
+    scan = Scan.from_mesh(mesh.vertices, mesh.faces, seed=0, count=20_000)
+    share_left = float((scan.points[:, 0] < 0.5).mean())
+    assert share_left == pytest.approx(0.5, abs=0.02)           # by vertices it would be > 0.99
+    assert np.allclose(np.abs(scan.normals[:, 2]), 1.0)
+    with pytest.raises(StatfitError, match="positive area"):
+        Scan.from_mesh(np.zeros((3, 3)), np.array([[0, 1, 2]]))
+
+
+def test_point_cloud_normals_are_the_surface_normals(rng):
+    direction = rng.normal(size=(3000, 3))
+    points = direction / np.linalg.norm(direction, axis=1, keepdims=True)   # a unit sphere
+    normals = estimate_normals(points)
+    assert np.abs((normals * points).sum(axis=1)).min() > 0.95
+    assert (Scan.from_points(points).normals * points).sum(axis=1).min() > 0.95   # oriented outwards
+
+
+def test_open_edges_of_a_closed_and_an_open_mesh():
+    closed = torch.as_tensor(trimesh.creation.icosphere(1).faces)
+    assert not open_edges(closed).any()
+    single = torch.tensor([[0, 1, 2]])
+    assert open_edges(single).all()
+
+
+def test_points_off_the_template_leave_the_data_term():
+    # template: the square [0, 1]² at z = 0; the scan: points on it, beyond its border, far above
+    # it and on it with a perpendicular normal
+    plane = trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0.]]),
+                                                              np.array([[0, 1, 2], [0, 2, 3]]), 0.1))
+    on = np.array([[0.3, 0.4, 0.001], [0.6, 0.5, -0.001], [0.5, 0.2, 0.0]])
+    beyond = np.array([[1.2, 0.5, 0.0]])
+    far = np.array([[0.5, 0.5, 0.5]])
+    sideways = np.array([[0.4, 0.6, 0.0]])
+    points = torch.as_tensor(np.concatenate([on, beyond, far, sideways]))
+    normals = torch.tensor([[0, 0, 1.0]] * 3 + [[0, 0, -1.0]] * 2 + [[1.0, 0, 0]], dtype=torch.float64)
+    query = ClosestPointQuery(plane.faces, len(plane.vertices))
+    objective = ScanObjective(points, query, trim=0.0, normals=normals, clutter=True)
+    objective.refresh(torch.as_tensor(plane.vertices))
+    assert objective._keep.tolist() == [True, True, True, False, False, False]
+    clean = ScanObjective(points, query, trim=0.0, normals=normals)      # a clean scan: the border rule only
+    clean.refresh(torch.as_tensor(plane.vertices))
+    assert clean._keep.tolist() == [True, True, True, False, True, True]
+
+
+@pytest.mark.parametrize("seed,units", [(0, "mm"), (1, "cm"), (2, "m"), (3, "mm")])
+def test_pose_units_and_offset_are_found_without_landmarks(embedded_model, seed, units):
+    model = embedded_model
+    rng = np.random.default_rng(seed)
+    shape = model.sample(rng)
+    made = realistic_scan(shape, model.faces, rng, yaw_deg=rng.uniform(-40, 40), clutter=0.5, units=units)
+    estimate = estimate_pose(model, Scan.from_mesh(made.vertices, made.faces))
+    assert _angle(estimate.transform.rotation, made.transform.rotation) < 3.0
+    assert estimate.transform.scale == made.transform.scale         # the units, exactly: size is the modes'
+    assert not estimate.ambiguous
+
+
+def test_a_scan_already_on_the_model_is_left_where_it_is(embedded_model):
+    model = embedded_model
+    rng = np.random.default_rng(5)
+    points = scan_from_view(model.sample(rng), model.faces, rng, 3000, 30.0)
+    estimate = estimate_pose(model, Scan.from_points(points))
+    assert estimate.transform.scale == 1.0
+    assert np.array_equal(estimate.transform.rotation, np.eye(3))
+    assert np.allclose(estimate.transform.translation, 0.0, atol=1e-12)
+
+
+@pytest.mark.parametrize("kind", ["sphere", "plane", "tube"])
+def test_scans_of_something_else_are_refused(embedded_model, kind):
+    model = embedded_model
+    radius = float(np.ptp(model.template, axis=0).max() / 2)
+    if kind == "sphere":
+        mesh = trimesh.creation.icosphere(4, radius=radius)
+    elif kind == "plane":
+        box = trimesh.creation.box([2 * radius, 2 * radius, 1e-3 * radius])
+        mesh = trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(box.vertices, box.faces, radius / 20))
+    else:
+        mesh = neck_tube(model.template)
+    with pytest.raises(StatfitError, match="does not look like the model"):
+        estimate_pose(model, Scan.from_mesh(mesh.vertices, mesh.faces))
+
+
+def test_register_cli_fits_a_posed_cluttered_mesh_scan_and_reports_the_pose(tmp_path):
+    scan, gt, fit, log = tmp_path / "scan.ply", tmp_path / "gt.ply", tmp_path / "fit.ply", tmp_path / "fit.jsonl"
+    assert run_cli(["synth", "scan", "--realistic", "--seed", "6", "--out", str(scan), "--gt", str(gt)])[0] == 0
+    code, err = run_cli(["register", str(scan), "--method", "pca", "--out", str(fit), "--log", str(log), "--quiet"])
+    assert code == 0, err
+    summary = json.loads(log.read_text().splitlines()[-1])
+    assert summary["pose"]["units_factor"] == 1000.0 and not summary["pose"]["ambiguous"]
+    fitted, _ = read_mesh(fit)
+    truth, _ = read_mesh(gt)
+    from statfit.align import umeyama
+    from statfit.model import default_model_path, load_model
+    template = load_model(default_model_path()).template
+    placed_mean = umeyama(template, truth, with_scale=True).apply(template)   # the mean, at its best pose
+    error = np.linalg.norm(fitted - truth, axis=1).mean()
+    assert error < 0.5 * np.linalg.norm(placed_mean - truth, axis=1).mean()
+
+
+def test_register_refuses_a_sphere_with_one_line(tmp_path):
+    sphere, out = tmp_path / "sphere.ply", tmp_path / "fit.ply"
+    mesh = trimesh.creation.icosphere(4, radius=120.0)     # a head-sized ball in mm, somewhere
+    mesh.apply_translation([300.0, -40.0, 900.0])
+    sphere.write_bytes(mesh.export(file_type="ply"))
+    code, err = run_cli(["register", str(sphere), "--out", str(out)])
+    assert code == 2 and "does not look like the model" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+
+
+def test_clutter_does_not_move_a_fit_in_the_models_frame(embedded_model):
+    model = embedded_model
+    errors = []
+    for clutter in (0.0, 0.5):
+        rng = np.random.default_rng(7)
+        shape = model.sample(rng)
+        made = realistic_scan(shape, model.faces, rng, clutter=clutter, holes=0, posed=False, units="m")
+        fit = register(model, Scan.from_mesh(made.vertices, made.faces), "pca", align="none", clutter=True)
+        errors.append(np.linalg.norm(fit.vertices - shape, axis=1)[model.regions["face"]].mean())
+    assert errors[1] <= 1.1 * errors[0] + 1e-5
