@@ -78,12 +78,22 @@ def closest_on_triangles(points: torch.Tensor, a: torch.Tensor, b: torch.Tensor,
     return torch.stack([1 - v - w, v, w], dim=-1), best.clamp_min(0)
 
 
+def open_edges(faces: torch.Tensor) -> torch.Tensor:
+    """(F, 3) bool: whether the edge opposite each triangle corner is on the mesh's open boundary
+    (used by one triangle only)."""
+    edges = torch.stack([faces[:, [1, 2]], faces[:, [2, 0]], faces[:, [0, 1]]], dim=1).sort(dim=-1).values
+    _, inverse, counts = torch.unique(edges.reshape(-1, 2), dim=0, return_inverse=True, return_counts=True)
+    return (counts[inverse] == 1).view(-1, 3)
+
+
 class ClosestPointQuery:
-    """Closest points on a mesh of fixed topology whose vertices move between queries."""
+    """Closest points on a mesh of fixed topology whose vertices move between queries; ``open_edges``
+    (F, 3) marks the topology's border edges (:func:`open_edges`)."""
 
     def __init__(self, faces: np.ndarray, num_vertices: int, k: int = 4, device: str | torch.device = "cpu"):
         self.k = k
         self.faces = torch.as_tensor(np.asarray(faces, dtype=np.int64), device=device)
+        self.open_edges = open_edges(self.faces)
         self._ring = torch.as_tensor(vertex_triangle_table(faces, num_vertices), device=device)
 
     def __call__(self, vertices: torch.Tensor, points: torch.Tensor) -> SurfacePoints:

@@ -9,12 +9,12 @@ import pytest
 import torch
 import trimesh
 
-from statfit.closest import ClosestPointQuery
+from statfit.closest import ClosestPointQuery, open_edges
 from statfit.errors import StatfitError
 from statfit.global_align import estimate_pose
 from statfit.io.landmarks import read_landmarks
 from statfit.io.mesh import read_mesh
-from statfit.objectives.scan import ScanObjective, open_edges
+from statfit.objectives.scan import ScanObjective
 from statfit.metrics import surface_distance
 from statfit.register import register
 from statfit.scan import Scan, estimate_normals

@@ -33,14 +33,6 @@ NORMAL_COSINE = 0.5
 ON_EDGE = 1e-6
 
 
-def open_edges(faces: torch.Tensor) -> torch.Tensor:
-    """(F, 3) bool: whether the edge opposite each triangle corner is on the mesh's open boundary
-    (used by one triangle only)."""
-    edges = torch.stack([faces[:, [1, 2]], faces[:, [2, 0]], faces[:, [0, 1]]], dim=1).sort(dim=-1).values
-    _, inverse, counts = torch.unique(edges.reshape(-1, 2), dim=0, return_inverse=True, return_counts=True)
-    return (counts[inverse] == 1).view(-1, 3)
-
-
 class ScanObjective:
     """Mean squared point-to-surface distance of a scan (M, 3) to the mesh, in the fit frame;
     ``normals`` (M, 3) the scan's unit normals (any sign), if known; ``clutter`` turns on the rules
@@ -52,7 +44,6 @@ class ScanObjective:
         self.points = points
         self.scan_normals = normals
         self.clutter = clutter
-        self.open_edges = open_edges(query.faces)
         self.query = query
         self.refresh_every = max(1, refresh_every)
         self.trim = trim
@@ -73,7 +64,7 @@ class ScanObjective:
             self._keep = self.region_faces[self.attachment.triangle]
         a, b, c = vertices.detach().index_select(0, self._corner_ids).view(-1, 3, 3).unbind(dim=1)
         normals = torch.nn.functional.normalize(torch.linalg.cross(b - a, c - a), dim=-1)   # (M, 3)
-        on_border = self.open_edges[self.attachment.triangle] & (self.attachment.barycentric < ON_EDGE)
+        on_border = self.query.open_edges[self.attachment.triangle] & (self.attachment.barycentric < ON_EDGE)
         self._keep &= ~on_border.any(dim=1)
         if self.clutter:
             if self.scan_normals is not None:
