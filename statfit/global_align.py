@@ -59,9 +59,14 @@ REFINE_ROUNDS = 2
 REFINE_SUBSAMPLE = 600
 POLISH_ITERATIONS = 12
 POLISH_SUBSAMPLE = 3000
-POLISH_NOISE = 0.01
+POLISH_NOISE = 0.04        # the polish's prior: weaker lets pose and modes trade (ICT, 8 cluttered scans:
+                           # mean angle error 2.9° at 0.01, 1.2° at 0.04, 2.2° at 0.08, 4.0° at 0.2)
 POLISH_TOLERANCE = 0.02    # the polished poses' score: a fit with every mode lies this close, clutter farther
 DISTINCT_DEGREES = 30.0
+# Share of the scan's points the fit with every mode explains (within POLISH_TOLERANCE) below which
+# the scan holds clutter: clean ICT study scans ≥ 0.88, scans with hair, neck and shoulders worth 50%
+# of the face's points ≤ 0.78 (docs/method.md, "The registration objective").
+CLUTTER_MATCHED = 0.83
 KEEP_FRAME = 1.05          # the scan as it lies scores within this factor of the best pose: keep it
 AMBIGUITY = 1.15           # runner-up score within this factor of the best: ambiguous
 FACING_MIN = -0.25         # cos between the model's face direction (+z) and the scan's mean normal
@@ -72,10 +77,11 @@ MIN_MATCHED = 0.3          # fewer scan points than this within TOLERANCE: no pa
 
 @dataclass(frozen=True)
 class PoseEstimate:
-    """The model→scan ``transform``; ``score`` (truncated residual, 0 best, 1 worst) and
-    ``matched`` (share of scan points within TOLERANCE with agreeing normals) of the best pose;
-    ``runner_up`` the score of the best pose ≥ DISTINCT_DEGREES from it; ``units`` the power of ten
-    taken as the scan's unit relative to the model's. ``matched`` counts within POLISH_TOLERANCE."""
+    """The model→scan ``transform``; ``score`` (truncated residual, 0 best, 1 worst, after the
+    first modes' refinement) of the best pose and ``runner_up`` that of the best pose ≥
+    DISTINCT_DEGREES from it; ``matched`` the share of scan points within POLISH_TOLERANCE (with
+    agreeing normals) of the polished fit; ``units`` the power of ten
+    taken as the scan's unit relative to the model's."""
 
     transform: Similarity
     score: float
@@ -211,9 +217,11 @@ def _angle(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees(Rotation.from_matrix(a.T @ b).magnitude()))
 
 
-def estimate_pose(model: StatModel, scan: Scan, seed: int = 0) -> PoseEstimate:
+def estimate_pose(model: StatModel, scan: Scan, seed: int = 0, face: np.ndarray | None = None) -> PoseEstimate:
     """The similarity that puts ``model`` onto ``scan`` (any rotation, offset and power-of-ten
-    units), found without landmarks; raises StatfitError when no pose matches enough of the scan."""
+    units), found without landmarks; raises StatfitError when no pose matches enough of the scan.
+    ``face`` (F,) bool, the model's face triangles: a scan with clutter (``matched`` below
+    CLUTTER_MATCHED) has its pose polished once more on them alone."""
     frame = Frame.of(model.template)
     centroid = scan.points.mean(axis=0)
     radius = float(np.sqrt(((scan.points - centroid) ** 2).sum(axis=1).mean()))
@@ -240,27 +248,30 @@ def estimate_pose(model: StatModel, scan: Scan, seed: int = 0) -> PoseEstimate:
     refined = [_refine(matcher, mean, basis_t, std, points[many], scan.normals[many], poses.pick(i), bounds)
                for i in candidates]
     best = int(np.argmin([score for _, score, _ in refined]))
-    transform, best_score, matched = refined[best]
-    coarse_matched = matched
+    transform, coarse_score, coarse_matched = refined[best]
     others = [score for index, (pose, score, _) in enumerate(refined)
               if index != best and _angle(pose.rotation, transform.rotation) >= DISTINCT_DEGREES]
     runner_up = min(others, default=1.0)
     every_mode = (torch.as_tensor(np.ascontiguousarray(model.basis.T)), torch.as_tensor(model.std / frame.scale))
     polish = rng.choice(len(points), min(POLISH_SUBSAMPLE, len(points)), replace=False)
-    transform, best_score, matched, coefficients = _polish(matcher, mean, *every_mode, points[polish],
-                                                           scan.normals[polish], transform)
+    transform, polished_score, matched, coefficients = _polish(matcher, mean, *every_mode, points[polish],
+                                                               scan.normals[polish], transform)
     if units == 1.0:   # the scan may already lie on the model: then leave it there
         in_place = Similarity(1.0, np.eye(3), (frame.center - centroid) / frame.scale)
         _, in_place_score, in_place_matched, _ = _polish(
             matcher, mean, *every_mode, points[polish], scan.normals[polish], in_place, move=False)
-        if in_place_score <= KEEP_FRAME * best_score:
-            transform, best_score, matched, coefficients = in_place, in_place_score, in_place_matched, None
+        if in_place_score <= KEEP_FRAME * polished_score:
+            transform, matched, coefficients = in_place, in_place_matched, None
     _check_plausible(coarse_matched, coefficients, TOLERANCE * frame.scale)
+    if face is not None and coefficients is not None and matched < CLUTTER_MATCHED:
+        # clutter (hair above all) biases the pose as it does the fit: polish once more on the face only
+        transform = _polish(matcher, mean, *every_mode, points[polish], scan.normals[polish], transform,
+                            region_faces=torch.as_tensor(face))[0]
     length = units * frame.scale      # unit frames → the scan's: p = length·q + centroid, u = (x − centre)/scale
     model_to_scan = Similarity(units * transform.scale, transform.rotation,
                                centroid + length * transform.translation
                                - units * transform.scale * transform.rotation @ frame.center)
-    estimate = PoseEstimate(model_to_scan, best_score, matched, runner_up, units)
+    estimate = PoseEstimate(model_to_scan, coarse_score, matched, runner_up, units)
     return estimate
 
 
@@ -305,14 +316,15 @@ def _refine(matcher: _Matcher, mean: np.ndarray, basis_t: torch.Tensor, std: tor
 
 
 def _polish(matcher: _Matcher, mean: np.ndarray, basis_t: torch.Tensor, std: torch.Tensor, points: np.ndarray,
-            normals: np.ndarray, start: Similarity, move: bool = True
+            normals: np.ndarray, start: Similarity, move: bool = True, region_faces: torch.Tensor | None = None
             ) -> tuple[Similarity, float, float, np.ndarray]:
     """Gauss–Newton on a rigid pose and every coefficient at once (``basis_t`` (K, 3N), ``std``
     (K,)): the fit's own robust point-to-plane residuals, a Gaussian prior on the coefficients only,
     the pose updated by a small rigid motion of the scan points each step. The scale is the units'
     (``start``'s scale is dropped, keeping the scan's centroid in place): a person's size is the
     model's to explain, by its modes and under its prior; a free scale would trade against them at
-    no cost. ``move`` False holds the pose. Returns the pose (model unit frame → scan unit frame),
+    no cost. ``move`` False holds the pose; ``region_faces`` (F,) bool keeps the data to those
+    triangles. Returns the pose (model unit frame → scan unit frame),
     its score (POLISH_TOLERANCE), matched share and the coefficients (K,) in standard deviations."""
     middle = start.inverse_apply(points).mean(axis=0)
     start = Similarity(1.0, start.rotation, start.apply(middle) - start.rotation @ middle)
@@ -322,7 +334,7 @@ def _polish(matcher: _Matcher, mean: np.ndarray, basis_t: torch.Tensor, std: tor
     for _ in range(POLISH_ITERATIONS):
         local = torch.as_tensor(pose.inverse_apply(points))
         objective = ScanObjective(local, matcher.query, trim=0.05, normals=torch.as_tensor(normals @ pose.rotation),
-                                  clutter=True)
+                                  clutter=True, region_faces=region_faces)
         x = mean_t + directions @ coefficients
         objective.refresh(x)
         residuals = objective.residuals(x)

@@ -14,7 +14,7 @@ from statfit.closest import ClosestPointQuery
 from statfit.errors import StatfitError, StatfitWarning
 from statfit.fit import StageTimer
 from statfit.frame import Frame
-from statfit.global_align import DISTINCT_DEGREES, estimate_pose
+from statfit.global_align import CLUTTER_MATCHED, DISTINCT_DEGREES, estimate_pose
 from statfit.methods import resolve
 from statfit.settings import FitSpace, Settings
 from statfit.model import StatModel, region_triangles
@@ -32,10 +32,6 @@ IMPLAUSIBLE_COORDINATE = 1e9
 # Median scan-to-template distance (in model RMS radii) above which the scan is "far" from the model.
 FAR_DISTANCE = 0.25
 ROBUST_ALIGNMENT_ROUNDS = 10
-# Share of the scan's points the pose search's fit with every mode explains (within 2% of the
-# radius) below which the scan holds clutter: clean ICT study scans ≥ 0.91, scans with hair, neck and
-# shoulders worth 50% of the face's points ≤ 0.82 (docs/method.md, "Real scans").
-CLUTTER_MATCHED = 0.87
 # With clutter, the data term keeps to the face: its region, or this many RMS radii around the
 # landmarks (ICT: 5.7 cm; 0.7 let the hair in: face error 1.48 mm against 0.70 at 0.5 and 1.73 for
 # the whole head; docs/method.md, "The registration objective").
@@ -130,7 +126,7 @@ def prealign(model: StatModel, scan: Scan, align: str, landmarks: np.ndarray | N
         return (start if align in ("none", "auto") else icp(model.template, model.faces, points,
                                                             align == "similarity", start=start)), None
     if align == "auto":
-        estimate = estimate_pose(model, scan, seed)
+        estimate = estimate_pose(model, scan, seed, face_triangles(model))
         return estimate.transform, estimate.summary()
     ratio = np.linalg.norm(np.ptp(points, axis=0)) / np.linalg.norm(np.ptp(model.template, axis=0))
     if align != "similarity" and not 1 / UNIT_MISMATCH_FACTOR < ratio < UNIT_MISMATCH_FACTOR:
