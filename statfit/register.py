@@ -126,7 +126,7 @@ def prealign(model: StatModel, scan: Scan, align: str, landmarks: np.ndarray | N
         return (start if align in ("none", "auto") else icp(model.template, model.faces, points,
                                                             align == "similarity", start=start)), None
     if align == "auto":
-        estimate = estimate_pose(model, scan, seed, face_triangles(model))
+        estimate = estimate_pose(model, scan, seed)
         return estimate.transform, estimate.summary()
     ratio = np.linalg.norm(np.ptp(points, axis=0)) / np.linalg.norm(np.ptp(model.template, axis=0))
     if align != "similarity" and not 1 / UNIT_MISMATCH_FACTOR < ratio < UNIT_MISMATCH_FACTOR:
