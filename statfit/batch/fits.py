@@ -72,7 +72,7 @@ def prepare_worker(max_threads: int | None = None) -> None:
 def _fit(job: FitJob, source: str, model: StatModel) -> tuple[bytes, dict[str, Any]]:
     common = dict(stages=job.stages, device=job.device, threads=job.threads)
     if job.command == "register":
-        result = register(model, load_scan(source), **common, **job.options)
+        result = register(model, load_scan(source, job.options.get("seed", 0)), **common, **job.options)
         pose = {"model_to_scan": result.transform.as_matrix().tolist(), "pose": result.pose}
     elif job.command == "render":
         options = dict(job.options)
