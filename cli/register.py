@@ -74,6 +74,7 @@ def register(
         statfit register scan.ply --model flame.npz --region face --landmarks scan_landmarks.txt
     """
     overrides = setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain)
+    clutter_rules = clutter_choice(clutter)
     stages = resolve(method, preset, **overrides)
     torch_device = resolve_device(device)
     if len(scans) > 1:
@@ -101,7 +102,7 @@ def register(
         result = fit_scan(model, points, stages=stages, align=align, device=str(torch_device),
                           refresh_every=refresh, trim=trim, seed=seed, on_record=run.on_record,
                           region=region, landmarks=scan_landmarks, landmark_weight=landmark_weight, threads=threads,
-                          clutter=clutter_choice(clutter))
+                          clutter=clutter_rules)
     summary = {"input": scan, "output": target, "method": method, "iterations": result.iterations,
                "final_loss": result.loss, "seconds": result.seconds,
                "stage_seconds": result.stage_seconds, "model_to_scan": result.transform.as_matrix().tolist(),

@@ -114,6 +114,11 @@ class _Poses:
         return np.einsum("hmi,hij->hmj", points[None] - self.translation[:, None], self.rotation) \
             / self.scale[:, None, None]
 
+    @classmethod
+    def of(cls, pose: Similarity) -> "_Poses":
+        """One pose."""
+        return cls(np.array([pose.scale]), pose.rotation[None], pose.translation[None])
+
     def pick(self, index: int) -> Similarity:
         return Similarity(float(self.scale[index]), self.rotation[index], self.translation[index])
 
@@ -261,12 +266,12 @@ def estimate_pose(model: StatModel, scan: Scan, seed: int = 0) -> PoseEstimate:
         if in_place_score <= KEEP_FRAME * polished_score:
             transform, matched, coefficients = in_place, in_place_matched, in_place_coefficients
     _check_plausible(coarse_matched, coefficients, TOLERANCE * frame.scale)
-    length = units * frame.scale      # unit frames → the scan's: p = length·q + centroid, u = (x − centre)/scale
+    # unit frames → the scan's: p = units·scale·q + centroid with u = (x − centre)/scale, written out so
+    # that the scale is the unit's exactly (a composition would round it)
     model_to_scan = Similarity(units * transform.scale, transform.rotation,
-                               centroid + length * transform.translation
+                               centroid + units * frame.scale * transform.translation
                                - units * transform.scale * transform.rotation @ frame.center)
-    estimate = PoseEstimate(model_to_scan, coarse_score, matched, runner_up, units)
-    return estimate
+    return PoseEstimate(model_to_scan, coarse_score, matched, runner_up, units)
 
 
 def _check_plausible(matched: float, coefficients: np.ndarray, tolerance: float) -> None:
@@ -292,7 +297,7 @@ def _refine(matcher: _Matcher, mean: np.ndarray, basis_t: torch.Tensor, std: tor
     ``std`` (K,) in the unit frame): trimmed ICP and a Gauss–Newton coefficient solve, alternated.
     Returns the pose (model unit frame → scan unit frame), its score and matched share, scored on
     the shape fitted."""
-    poses = _Poses(np.array([start.scale]), start.rotation[None], start.translation[None])
+    poses = _Poses.of(start)
     shape = mean
     for _ in range(REFINE_ROUNDS):
         poses = _icp(matcher, points, normals, poses, ROUNDS // 2, bounds)
@@ -349,7 +354,7 @@ def _polish(matcher: _Matcher, mean: np.ndarray, basis_t: torch.Tensor, std: tor
             pose = compose(pose, Similarity(1.0, rotation.T, -rotation.T @ moved))
     shape = (mean_t + directions @ coefficients).numpy()
     matcher.set_shape(shape)
-    poses = _Poses(np.array([pose.scale]), pose.rotation[None], pose.translation[None])
+    poses = _Poses.of(pose)
     score, matched = _score(matcher, points, normals, poses, POLISH_TOLERANCE)
     matcher.set_shape(mean)
     return pose, float(score[0]), float(matched[0]), coefficients.numpy()

@@ -100,17 +100,14 @@ def _points_of(geometry, source: str | Path) -> np.ndarray:
     return vertices
 
 
-def read_scan(source: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """A scan file's points (M, 3) and, for a triangle mesh, its faces (F, 3) (else None)."""
-    geometry = _load(source)
-    is_mesh = isinstance(geometry, trimesh.Trimesh) and len(geometry.faces) > 0
-    return _points_of(geometry, source), np.asarray(geometry.faces, dtype=np.int64) if is_mesh else None
-
-
 def load_scan(source: str | Path, seed: int = 0) -> Scan:
-    """A scan file as the fit takes it: a mesh's points drawn by area, a point cloud's as they are."""
-    points, faces = read_scan(source)
-    return Scan.from_mesh(points, faces, seed) if faces is not None else Scan.from_points(points)
+    """A scan file as the fit takes it: a mesh's points drawn by area (deterministic for ``seed``),
+    a point cloud's as they are."""
+    geometry = _load(source)
+    points = _points_of(geometry, source)
+    if isinstance(geometry, trimesh.Trimesh) and len(geometry.faces) > 0:
+        return Scan.from_mesh(points, np.asarray(geometry.faces, dtype=np.int64), seed)
+    return Scan.from_points(points)
 
 
 def read_mesh(source: str | Path) -> tuple[np.ndarray, np.ndarray]:
