@@ -63,6 +63,14 @@ def candidates() -> dict:
     }
 
 
+def register_with(method: str, model, points: np.ndarray, **options):
+    """``register`` with a shipped method or a candidate pipeline of :func:`candidates`."""
+    from statfit.register import register
+
+    stages = candidates().get(method)
+    return register(model, points, method if stages is None else "default", stages=stages, threads=1, **options)
+
+
 def smooth_deformation(vertices: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """(N, 3) displacement: a sum of Gaussian bumps centred on random vertices."""
     scale = float(np.sqrt(((vertices - vertices.mean(axis=0)) ** 2).sum(axis=1).mean()))
@@ -102,7 +110,7 @@ def fit(method: str, name: str, half: str, k: int) -> dict:
     from cases import ict_model
     from statfit.metrics import surface_distance
     from statfit.model import with_landmarks
-    from statfit.register import landmark_alignment, register
+    from statfit.register import landmark_alignment
     from statfit.threads import flush_denormals_everywhere
 
     flush_denormals_everywhere()
@@ -112,9 +120,7 @@ def fit(method: str, name: str, half: str, k: int) -> dict:
     if method == "mean":
         vertices = landmark_alignment(model, data["landmarks"]).apply(model.template)
     else:
-        stages = candidates().get(method)
-        result = register(model, data["seen"], method if stages is None else "default", stages=stages,
-                          landmarks=data["landmarks"], threads=1)
+        result = register_with(method, model, data["seen"], landmarks=data["landmarks"])
         vertices, seconds = result.vertices, result.seconds
     held = data["held_landmarks"]
     mm = 10.0  # ICT is in cm
@@ -131,16 +137,13 @@ def in_span(method: str) -> dict:
 
     torch.set_num_threads(1)
     from cases import STUDY_SCAN_CASES, ict_model, scan_case
-    from statfit.register import register
     from statfit.threads import flush_denormals_everywhere
 
     flush_denormals_everywhere()
-    stages = candidates().get(method)
     errors = {}
     for name in STUDY_SCAN_CASES:
         case = scan_case(name)
-        result = register(ict_model(), case.points, method if stages is None else "default", stages=stages,
-                          align="none", threads=1)
+        result = register_with(method, ict_model(), case.points, align="none")
         errors[name] = float(np.linalg.norm(result.vertices - case.target, axis=1).mean())
     return {"method": method, "in_span": errors}
 
@@ -153,7 +156,7 @@ def run(k: int, methods: list[str], with_in_span: bool) -> None:
     rows = load()
     have = {(r["method"], r.get("case"), r.get("half"), r.get("k")) for r in rows}
     jobs = [(m, c, h, k) for m in methods for c in TARGETS for h in HALVES if (m, c, h, k) not in have]
-    span_jobs = [m for m in methods if with_in_span and m not in ("mean",)
+    span_jobs = [m for m in methods if with_in_span and m != "mean"
                  and not any(r["method"] == m and "in_span" in r for r in rows)]
     with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as pool:
         pending = [pool.submit(fit, *job) for job in jobs] + [pool.submit(in_span, m) for m in span_jobs]
@@ -164,8 +167,9 @@ def run(k: int, methods: list[str], with_in_span: bool) -> None:
 
 
 def report(k: int) -> str:
-    rows = [r for r in load() if r.get("k") == k]
-    spans = {r["method"]: r["in_span"] for r in load() if "in_span" in r}
+    saved = load()
+    rows = [r for r in saved if r.get("k") == k]
+    spans = {r["method"]: r["in_span"] for r in saved if "in_span" in r}
     methods = list(dict.fromkeys(r["method"] for r in rows))
     by = {(r["method"], r["case"], r["half"]): r for r in rows}
     lines = [f"Fitted with the first {k} modes; mm; means over {len(TARGETS)} people × 4 halves "
