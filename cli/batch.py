@@ -30,7 +30,7 @@ from statfit.io.normalmap import read_camera
 from statfit.methods import resolve
 from statfit.model import StatModel, region_vertices
 from statfit.objectives.normals import SILHOUETTE_WEIGHT
-from statfit.register import resolve_device
+from statfit.device import resolve_device
 from statfit.threads import available_cores
 from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, IterationsOption, KOption, LamOption,
                                 LaplacianOption, LrOption, MethodOption, ModeGainOption, ModelOption, PowerOption,

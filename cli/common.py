@@ -50,7 +50,7 @@ MethodOption = typer.Option("default", help="default (the measured best pipeline
                             + "; ".join(f"{name}: {method.summary}" for name, method in METHODS.items())
                             + ". register's pca is a closed-form Gauss-Newton fit (~25x sooner than default).")
 PresetOption = typer.Option("tuned", help="tuned (our measured defaults) or paper (the paper's settings, exactly).")
-DeviceOption = typer.Option("cpu", help="auto, cpu or cuda.")
+DeviceOption = typer.Option("cpu", envvar="STATFIT_DEVICE", help="auto, cpu or cuda (default: $STATFIT_DEVICE, else cpu).")
 ThreadsOption = typer.Option(None, help="CPU threads for the fit. Default: 1 for head-sized models (a second "
                              "thread gains little and stalls when the other core is busy), all cores for large ones.",
                              show_default=False)

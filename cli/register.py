@@ -10,7 +10,8 @@ from statfit.io.files import existing_file
 from statfit.io.mesh import check_writable, load_scan, mesh_bytes, mesh_format
 from statfit.io.landmarks import read_landmarks
 from statfit.methods import resolve
-from statfit.register import LANDMARK_WEIGHT, register as fit_scan, resolve_device
+from statfit.device import resolve_device
+from statfit.register import LANDMARK_WEIGHT, register as fit_scan
 from statfit.importers.cache import open_model
 from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, IterationsOption, JsonOption, KOption,
                                 LamOption, LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption,

@@ -11,7 +11,7 @@ from statfit.io.image import read_mask
 from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_mesh
 from statfit.io.normalmap import apply_mask, camera_for_map, read_normal_map
 from statfit.objectives.normals import SILHOUETTE_WEIGHT
-from statfit.register import resolve_device
+from statfit.device import resolve_device
 from statfit.importers.cache import open_model
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
                                 LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,

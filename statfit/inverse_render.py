@@ -30,7 +30,8 @@ from statfit.settings import FitSpace, Settings
 from statfit.model import StatModel, region_triangles
 from statfit.objectives.normals import SILHOUETTE_WEIGHT, NormalMapObjective
 from statfit.pose import fit_pose
-from statfit.register import UNIT_MISMATCH_FACTOR, resolve_device
+from statfit.device import resolve_device
+from statfit.register import UNIT_MISMATCH_FACTOR
 from statfit.render import Camera, MeshAdjacency, rasterize
 from statfit.stages import Fit, run_stages
 from statfit.threads import choose_threads, intra_op_threads
@@ -124,7 +125,7 @@ def _centring_guess(template: torch.Tensor, faces: torch.Tensor, camera: Camera,
         model_centre = np.array([model_cols.mean() + 0.5, model_rows.mean() + 0.5])
         area_ratio = mask.sum() / covered.sum()
     elif with_scale and bool((depths > 0).all()):
-        low, high = pixels.min(dim=0).values.numpy(), pixels.max(dim=0).values.numpy()
+        low, high = pixels.min(dim=0).values.cpu().numpy(), pixels.max(dim=0).values.cpu().numpy()
         model_centre = (low + high) / 2
         area_ratio = (np.ptp(cols) + 1) * (np.ptp(rows) + 1) / max(float(np.prod(high - low)), 1e-300)
         rough = _similarity_move(template, camera, model_centre, target_centre, area_ratio, float(depths.mean()))
@@ -153,7 +154,7 @@ def _similarity_move(template: torch.Tensor, camera: Camera, model_centre: np.nd
 
 def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method: str = "default", *,
                 preset: str = "tuned", normal_space: str = "world", normal_convention: str = "opencv",
-                align: str = "rigid", init: np.ndarray | None = None, device: str = "cpu",
+                align: str = "rigid", init: np.ndarray | None = None, device: str | None = None,
                 dtype: torch.dtype = torch.float32, silhouette_weight: float = SILHOUETTE_WEIGHT, seed: int = 0,
                 on_record: Callable[[int, dict[str, float]], None] | None = None,
                 timer: StageTimer | None = None, stages: tuple[Settings, ...] | None = None,

@@ -11,6 +11,7 @@ from scipy.spatial import cKDTree
 
 from statfit.align import Similarity, icp, initial_guess, umeyama
 from statfit.closest import ClosestPointQuery
+from statfit.device import resolve_device
 from statfit.errors import StatfitError, StatfitWarning
 from statfit.fit import StageTimer
 from statfit.frame import Frame
@@ -68,17 +69,6 @@ def face_triangles(model: StatModel) -> np.ndarray | None:
     nearest, _ = cKDTree(model.template[model.landmarks]).query(model.template)
     inside = nearest < FACE_RADIUS * Frame.of(model.template).scale
     return inside[model.faces].all(axis=1)
-
-
-def resolve_device(device: str) -> torch.device:
-    """'auto' picks CUDA when available."""
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if device not in ("cpu", "cuda"):
-        raise StatfitError(f"unknown device {device!r}; choose auto, cpu or cuda")
-    if device == "cuda" and not torch.cuda.is_available():
-        raise StatfitError("--device cuda was asked for but no CUDA device is available")
-    return torch.device(device)
 
 
 def present_landmarks(model: StatModel, landmarks: np.ndarray) -> np.ndarray:
@@ -142,7 +132,7 @@ def prealign(model: StatModel, scan: Scan, align: str, landmarks: np.ndarray | N
 
 
 def register(model: StatModel, points: np.ndarray | Scan, method: str = "default", *, preset: str = "tuned",
-             align: str = "auto", device: str = "cpu", dtype: torch.dtype = torch.float32,
+             align: str = "auto", device: str | None = None, dtype: torch.dtype = torch.float32,
              refresh_every: int = 10, trim: float = 0.05, seed: int = 0,
              on_record: Callable[[int, dict[str, float]], None] | None = None,
              timer: StageTimer | None = None, stages: tuple[Settings, ...] | None = None,

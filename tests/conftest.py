@@ -1,7 +1,11 @@
-"""Shared fixtures: the embedded model, the real ICT model (../shared), small random problems."""
+"""Shared fixtures: the embedded model, the real ICT model (../shared), small random problems.
+
+``STATFIT_DEVICE=cuda python -m pytest`` runs every job the suite starts (register, render,
+inpaint, batch, CLI) on the GPU: :func:`statfit.device.resolve_device` reads it."""
 from __future__ import annotations
 
 import multiprocessing
+import os
 import sys
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -11,11 +15,17 @@ import numpy as np
 import pytest
 import torch
 
+from statfit.device import DEVICE_ENV
 from statfit.model import default_model_path, load_model
 
 # The one definition of where the shared data lie, and of the ICT cases, is benchmarks/ (common.py, cases.py).
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from common import ICT as ICT_DIR  # noqa: E402
+
+
+def pytest_configure(config):
+    if os.environ.get(DEVICE_ENV, "").startswith("cuda") and not torch.cuda.is_available():
+        raise pytest.UsageError(f"{DEVICE_ENV}={os.environ[DEVICE_ENV]} but torch sees no CUDA device")
 
 
 @pytest.fixture(scope="session")

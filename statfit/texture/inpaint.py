@@ -14,6 +14,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
+from statfit.device import resolve_device
 from statfit.errors import StatfitError
 from statfit.fit import Progress
 from statfit.methods import METHODS, resolve
@@ -114,7 +115,7 @@ def model_reconstruction(model: TextureModel, image: np.ndarray, visible: np.nda
 
 def inpaint(image: np.ndarray, visible: np.ndarray, method: str | None = None, model: TextureModel | None = None, *,
             settings: Settings | None = None, start: str = "mean", charts: np.ndarray | None = None,
-            resize: bool = False, device: str | torch.device = "cpu", on_record: Progress | None = None) -> Inpainting:
+            resize: bool = False, device: str | torch.device | None = None, on_record: Progress | None = None) -> Inpainting:
     """Fill the holes (``visible`` False) of ``image`` (H, W, C) in [0, 1].
 
     ``method``: hybrid (default with a model), statistical, pca, laplacian (default without), none;
@@ -142,7 +143,7 @@ def inpaint(image: np.ndarray, visible: np.ndarray, method: str | None = None, m
         return replace(fitted, result=np.where(visible[..., None], image, filled),
                        model_only=resize_image(fitted.model_only, image.shape[:2]))
     check_model(model, image, method)
-    device = torch.device(device)
+    device = resolve_device(device)
     height, width, channels = image.shape
     target = torch.as_tensor(image.reshape(-1, channels), device=device)
     if model is not None:
