@@ -19,6 +19,7 @@ ROOT = Path(__file__).resolve().parents[1]
 ICT = ROOT.parent / "shared" / "data" / "ict-face"
 ICT_MODEL = ICT / "ict_face_identity.npz"
 ICT_EXPRESSIONS = ICT / "ict_face_expressions.npz"
+MAKEHUMAN = ROOT.parent / "shared" / "data" / "makehuman"
 FIXTURES = ROOT / "tests"  # generated test data (texture_fixtures.py) that benchmarks reuse
 PACKAGES = ("torch", "numpy", "scipy", "trimesh", "libigl", "cholespy", "largesteps", "pycpd")
 

@@ -7,7 +7,9 @@ import numpy as np
 import typer
 
 from statfit.errors import StatfitError
-from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, points_bytes, write_atomic
+from statfit.importers.makehuman import read_makehuman
+from statfit.importers.makehuman_shapes import BodySpace
+from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, points_bytes, read_mesh, write_atomic
 from statfit.io.normalmap import write_camera, write_normal_map
 from statfit.io.landmarks import landmarks_text
 from statfit.scanner import UNITS_PER_METRE, realistic_scan
@@ -124,17 +126,29 @@ def normals(
     delta: Path = DeltaOption,
     delta_name: str = DeltaNameOption,
     delta_weight: float = DeltaWeightOption,
+    shape_path: Path = typer.Option(None, "--shape", help="Render this mesh (the model's topology, e.g. from "
+                                    "`statfit synth body`) instead of a model sample.", show_default=False),
 ) -> None:
-    """A model sample seen by a pinhole camera: a normal map plus its camera and ground truth.
+    """A model sample (or a given --shape) seen by a pinhole camera: a normal map plus its camera and
+    ground truth.
 
         statfit synth normals --model model.npz --seed 3 --yaw 20 --out normals.exr --camera-out camera.json --gt gt.ply
+        statfit synth normals --model body.npz --shape person.ply --yaw 30 --size 768 --out body.exr --camera-out cam.json
     """
     check_delta_options(delta, delta_name)
+    if shape_path is not None and delta is not None:
+        raise StatfitError("--shape and --delta do not go together: add the delta to the mesh itself")
     for target in (out, camera_out, gt):
         if target is not None:
             check_writable(target)
     model = open_model(model_path)
-    shape = _target(model, np.random.default_rng(seed), sigma, delta, delta_name, delta_weight)
+    if shape_path is None:
+        shape = _target(model, np.random.default_rng(seed), sigma, delta, delta_name, delta_weight)
+    else:
+        shape, faces = read_mesh(shape_path)
+        if shape.shape != model.template.shape or faces.shape != model.faces.shape or (faces != model.faces).any():
+            raise StatfitError(f"{shape_path} is not in the model's topology ({model.num_vertices} vertices, "
+                               f"{len(model.faces)} faces; it has {len(shape)} and {len(faces)})")
     camera = camera_for_view(shape, yaw, pitch, size, fov)
     normal_map, mask = render_target(shape, model.faces, camera)
     if not mask.any():
@@ -144,3 +158,25 @@ def normals(
         write_camera(camera_out, camera)
     if gt is not None:
         write_atomic(gt, mesh_bytes(shape, model.faces, mesh_format(gt)))
+
+
+@app.command("body")
+def body(
+    folder: Path = typer.Argument(..., help="The MakeHuman data folder, e.g. ../shared/data/makehuman.",
+                                  show_default=False),
+    out: Path = typer.Option(..., "--out", "-o", help="Body mesh to write (.ply or .obj), metres, the topology of "
+                             "`statfit model build-makehuman`.", show_default=False),
+    seed: int = seed_option(0, "Seed of the body's sliders."),
+    held_out: bool = typer.Option(True, "--held-out/--train", help="held-out: a body the built model never saw "
+                                  "(asymmetric, expressions, asym targets, sliders in the tails); train: a body "
+                                  "from the model's own training distribution."),
+) -> None:
+    """A random MakeHuman body, as ground truth for full-body tests (docs/bodies.md).
+
+        statfit synth body ../shared/data/makehuman --seed 4 -o person.ply
+        statfit synth normals --model body.npz --shape person.ply --yaw 30 --size 768 --out body.exr --camera-out cam.json
+    """
+    check_writable(out)
+    space = BodySpace(read_makehuman(folder))
+    weights = space.weights(np.random.default_rng(seed), 1, "held_out" if held_out else "train")
+    write_atomic(out, mesh_bytes(space.shapes(weights)[0], space.data.faces, mesh_format(out)))

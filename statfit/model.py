@@ -118,19 +118,20 @@ def refuse_texture_model(arrays: dict[str, np.ndarray], path: str | Path) -> Non
         raise StatfitError(f"{path} is a texture model (for `statfit inpaint --model`), not a mesh model")
 
 
-def model_arrays(model: StatModel) -> dict[str, np.ndarray]:
-    """The npz-contract arrays of ``model`` (shapedirs = basis scaled by the std-devs)."""
-    arrays = {"v_template": model.template, "faces": model.faces,
-              "shapedirs": (model.basis * model.std).reshape(model.num_vertices, 3, model.num_modes)}
+def model_arrays(model: StatModel, dtype: type = np.float64) -> dict[str, np.ndarray]:
+    """The npz-contract arrays of ``model`` (shapedirs = basis scaled by the std-devs, as ``dtype``)."""
+    shapedirs = (model.basis * model.std).reshape(model.num_vertices, 3, model.num_modes).astype(dtype)
+    arrays = {"v_template": model.template, "faces": model.faces, "shapedirs": shapedirs}
     if model.landmarks is not None:
         arrays["landmarks"] = model.landmarks
     arrays.update({f"region_{name}": index for name, index in model.regions.items()})
     return arrays
 
 
-def save_model(model: StatModel, path: str | Path) -> None:
-    """Write ``model`` as an npz in the contract, atomically, with reproducible bytes."""
-    write_atomic(path, npz_bytes(model_arrays(model)))
+def save_model(model: StatModel, path: str | Path, dtype: type = np.float64) -> None:
+    """Write ``model`` as an npz in the contract, atomically, with reproducible bytes; ``dtype``
+    the shapedirs' (float32 halves a large model)."""
+    write_atomic(path, npz_bytes(model_arrays(model, dtype)))
 
 
 def with_regions(model: StatModel, regions: dict[str, np.ndarray], source: str = "regions") -> StatModel:

@@ -1,5 +1,5 @@
 """Preview image of an inverse-rendering fit: target normals | fitted normals | angular error
-(with a colour bar) | the fitted mesh from a second viewpoint."""
+(with a colour bar) | the fitted mesh turned 70° | the fitted mesh from behind (what the map never saw)."""
 from __future__ import annotations
 
 import io
@@ -14,6 +14,7 @@ from statfit.render import Camera  # noqa: E402
 from statfit.synth import render_target  # noqa: E402
 
 SIDE_VIEW_DEG = 70.0
+BACK_VIEW_DEG = 180.0
 
 
 def normals_to_rgb(normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -49,7 +50,8 @@ def preview_png(target: np.ndarray, target_mask: np.ndarray, vertices: np.ndarra
     both = covered & target_mask
     error = np.where(both, angular_error(fitted, target), np.nan)
     side, side_mask = render_target(vertices, faces, side_camera(camera, vertices), space="camera")
-    figure, axes = plt.subplots(1, 4, figsize=(16, 4.4), constrained_layout=True)
+    back, back_mask = render_target(vertices, faces, side_camera(camera, vertices, BACK_VIEW_DEG), space="camera")
+    figure, axes = plt.subplots(1, 5, figsize=(20, 4.4), constrained_layout=True)
     axes[0].imshow(normals_to_rgb(target, target_mask))
     axes[0].set_title("target normals")
     axes[1].imshow(normals_to_rgb(fitted, covered))
@@ -61,6 +63,8 @@ def preview_png(target: np.ndarray, target_mask: np.ndarray, vertices: np.ndarra
     figure.colorbar(heat, ax=axes[2], fraction=0.046, pad=0.02, label="degrees")
     axes[3].imshow(normals_to_rgb(side, side_mask))
     axes[3].set_title(f"fitted mesh, view turned {SIDE_VIEW_DEG:.0f}°")
+    axes[4].imshow(normals_to_rgb(back, back_mask))
+    axes[4].set_title("fitted mesh, from behind")
     for axis in axes:
         axis.set_axis_off()
     buffer = io.BytesIO()

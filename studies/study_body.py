@@ -1,0 +1,183 @@
+"""Full bodies from one normal map (issue 14's study, the paper's body figure as numbers).
+
+Model: ``statfit model build-makehuman`` (300 modes, 5,000 bodies, seed 0), built once into a
+cache outside the repository. Targets: held-out MakeHuman bodies (``statfit synth body``: asymmetric,
+with the asym and expression targets and sliders in the tails, none of which the model saw),
+seeds 1..6, each seen from two views (yaw 30° and −60°, pitch 10°). Every method at its tuned
+render setting (``resolve(method, job="render")``), default rigid alignment.
+
+Metrics, per fit, in mm: mean vertex error over all vertices, the vertices seen in the map and the
+rest ("unseen"): raw; "scaled", after the one thing a normal map cannot tell — the body's size at
+its distance (normals do not change when the scene is scaled about the camera centre): the fit
+scaled about the camera centre by the closed-form least-squares factor; and "aligned" (the
+ranking measure), after the least-squares similarity (Umeyama), which also takes out the few
+degrees of whole-body rotation that one view leaves loose. Plausibility of the unseen
+side: RMS distance of its vertices to the model's span (the ground truth's own is reported beside
+it: held-out bodies are not in the span either) and the mean angle between fitted and true normals
+of the unseen triangles.
+
+Results are appended to ``studies/results/study_body.json`` after every fit (a rerun resumes);
+``--report`` prints the Markdown tables of docs/studies.md. From the repository root:
+
+    PYTHONPATH=. python studies/study_body.py [--size 384] [--methods a,b] [--workers 2] [--report]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from common import MAKEHUMAN  # noqa: E402
+
+RESULTS = ROOT / "studies" / "results" / "study_body.json"
+MODEL_CACHE = Path(os.environ.get("STATFIT_BODY_MODEL", "/tmp/statfit-study-body-300.npz"))
+SEEDS = (1, 2, 3, 4, 5, 6)
+VIEWS = ((30.0, 10.0), (-60.0, 10.0))
+METHODS = ("default", "hybrid", "statistical", "laplacian", "pca", "regularized", "none")
+
+
+def body_model():
+    """The study's model (built into ``MODEL_CACHE`` the first time, ~25 s)."""
+    from statfit.importers.makehuman import read_makehuman
+    from statfit.importers.makehuman_shapes import BodySpace, body_regions, build_body_model
+    from statfit.model import load_model, save_model
+
+    if not MODEL_CACHE.exists():
+        space = BodySpace(read_makehuman(MAKEHUMAN))
+        save_model(build_body_model(space, 300, 5000, 0, body_regions(space)).model, MODEL_CACHE, np.float32)
+    return load_model(MODEL_CACHE)
+
+
+def held_out_body(seed: int) -> np.ndarray:
+    from statfit.importers.makehuman import read_makehuman
+    from statfit.importers.makehuman_shapes import BodySpace
+
+    space = BodySpace(read_makehuman(MAKEHUMAN))
+    return space.shapes(space.weights(np.random.default_rng(seed), 1, "held_out"))[0]
+
+
+def scale_about(fit: np.ndarray, gt: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """``fit`` scaled about ``centre`` by the least-squares factor that brings it to ``gt``."""
+    a, b = fit - centre, gt - centre
+    return centre + (a * b).sum() / (a * a).sum() * a
+
+
+def off_span(model, vertices: np.ndarray, where: np.ndarray) -> float:
+    """RMS distance (m) of ``where``'s vertices from the model's span: the residual of the shape
+    after its projection onto the modes, over those vertices."""
+    delta = (vertices - model.template).reshape(-1)
+    residual = (delta - model.basis @ (model.basis.T @ delta)).reshape(-1, 3)
+    return float(np.sqrt((residual[where] ** 2).sum(axis=1).mean()))
+
+
+def normal_angle(fit: np.ndarray, gt: np.ndarray, faces: np.ndarray, where: np.ndarray) -> float:
+    """Mean angle (degrees) between the fitted and true normals of triangles with all vertices in ``where``."""
+    def normals(v):
+        n = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])
+        return n / np.linalg.norm(n, axis=1, keepdims=True).clip(1e-30)
+    inside = where[faces].all(axis=1)
+    cosine = (normals(fit)[inside] * normals(gt)[inside]).sum(axis=1).clip(-1, 1)
+    return float(np.degrees(np.arccos(cosine)).mean())
+
+
+def run_case(task: tuple[int, float, float, str, int]) -> dict:
+    seed, yaw, pitch, method, size = task
+    import torch
+
+    torch.set_num_threads(1)
+    from statfit.align import umeyama
+    from statfit.inverse_render import reconstruct
+    from statfit.metrics import visible_vertices
+    from statfit.normal_map import NormalMap
+    from statfit.synth import camera_for_view, render_target
+
+    model = body_model()
+    gt = held_out_body(seed)
+    camera = camera_for_view(gt, yaw, pitch, size)
+    normals, mask = render_target(gt, model.faces, camera)
+    started = time.perf_counter()
+    fit = reconstruct(model, NormalMap(normals, mask), camera, method, threads=1).vertices
+    seconds = time.perf_counter() - started
+    seen = visible_vertices(gt, model.faces, camera)
+    centre = -camera.rotation.numpy().T @ camera.world_to_camera[:3, 3].numpy()
+    scaled = scale_about(fit, gt, centre)
+    aligned = umeyama(fit, gt, with_scale=True).apply(fit)
+    row = {"seed": seed, "yaw": yaw, "pitch": pitch, "method": method, "size": size, "seconds": seconds,
+           "seen_share": float(seen.mean())}
+    for name, shape in (("raw", fit), ("scaled", scaled), ("aligned", aligned)):
+        error = np.linalg.norm(shape - gt, axis=1) * 1000
+        row[name] = {"all": float(error.mean()), "seen": float(error[seen].mean()),
+                     "unseen": float(error[~seen].mean())}
+    row["off_span_unseen_mm"] = off_span(model, fit, ~seen) * 1000
+    row["gt_off_span_unseen_mm"] = off_span(model, gt, ~seen) * 1000
+    row["normal_angle_unseen_deg"] = normal_angle(aligned, gt, model.faces, ~seen)
+    return row
+
+
+def done_rows() -> list[dict]:
+    return [json.loads(line) for line in RESULTS.read_text().splitlines()] if RESULTS.exists() else []
+
+
+def report(rows: list[dict]) -> str:
+    methods = [m for m in METHODS if any(r["method"] == m for r in rows)]
+    cases = sorted({(r["seed"], r["yaw"]) for r in rows})
+    lines = ["| method | all (raw) | all (scaled) | all | seen | unseen | unseen off-span | unseen normal ° | s per fit |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for method in methods:
+        mine = [r for r in rows if r["method"] == method]
+        mean = lambda f: np.mean([f(r) for r in mine])  # noqa: E731
+        lines.append(f"| {method} | {mean(lambda r: r['raw']['all']):.1f} | {mean(lambda r: r['scaled']['all']):.1f} | "
+                     f"{mean(lambda r: r['aligned']['all']):.1f} | "
+                     f"{mean(lambda r: r['aligned']['seen']):.1f} | {mean(lambda r: r['aligned']['unseen']):.1f} | "
+                     f"{mean(lambda r: r['off_span_unseen_mm']):.2f} | {mean(lambda r: r['normal_angle_unseen_deg']):.1f} | "
+                     f"{mean(lambda r: r['seconds']):.0f} |")
+    gt_span = np.mean([r["gt_off_span_unseen_mm"] for r in rows])
+    lines.append(f"\nGround truth's own unseen off-span distance: {gt_span:.2f} mm (mean over cases).\n")
+    lines.append("| body, view | " + " | ".join(methods) + " | best |")
+    lines.append("|---|" + "---|" * (len(methods) + 1))
+    for seed, yaw in cases:
+        errors = {m: next((r["aligned"]["all"] for r in rows if (r["seed"], r["yaw"], r["method"]) == (seed, yaw, m)),
+                          np.nan) for m in methods}
+        unseen = {m: next((r["aligned"]["unseen"] for r in rows if (r["seed"], r["yaw"], r["method"]) == (seed, yaw, m)),
+                          np.nan) for m in methods}
+        best = min(errors, key=lambda m: errors[m] if np.isfinite(errors[m]) else np.inf)
+        lines.append(f"| {seed}, yaw {yaw:.0f} | " + " | ".join(f"{errors[m]:.1f} ({unseen[m]:.1f})" for m in methods)
+                     + f" | {best} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--size", type=int, default=384)
+    parser.add_argument("--methods", default=",".join(METHODS))
+    parser.add_argument("--seeds", default=",".join(map(str, SEEDS)))
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--report", action="store_true")
+    args = parser.parse_args()
+    if args.report:
+        print(report(done_rows()))
+        return
+    body_model()  # build the cache once, before the workers
+    done = {(r["seed"], r["yaw"], r["method"], r["size"]) for r in done_rows()}
+    tasks = [(seed, yaw, pitch, method, args.size) for method in args.methods.split(",")
+             for seed in map(int, args.seeds.split(",")) for yaw, pitch in VIEWS
+             if (seed, yaw, method, args.size) not in done]
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    with ProcessPoolExecutor(args.workers) as pool:
+        for row in pool.map(run_case, tasks):
+            with RESULTS.open("a") as handle:
+                handle.write(json.dumps(row) + "\n")
+            print(f"{row['method']:12s} seed {row['seed']} yaw {row['yaw']:5.0f}: all {row['aligned']['all']:.1f} mm "
+                  f"(raw {row['raw']['all']:.1f}), unseen {row['aligned']['unseen']:.1f}, {row['seconds']:.0f} s", flush=True)
+
+
+if __name__ == "__main__":
+    main()

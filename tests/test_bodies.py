@@ -1,0 +1,124 @@
+"""Full bodies: the MakeHuman reader and body model builder (on the real CC0 files in ../shared),
+held-out bodies, and `model build-makehuman` → `synth body` → `synth normals --shape` → `render`."""
+from __future__ import annotations
+
+import gzip
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from statfit.align import umeyama
+from statfit.errors import StatfitError
+from statfit.importers.makehuman import MAX_FILE_BYTES, read_makehuman
+from statfit.importers.makehuman_shapes import MACRO_CORNERS, BodySpace, _hat_weights, body_regions, build_body_model
+from statfit.io.mesh import read_mesh
+from statfit.model import load_model
+from test_cli import run
+
+from common import MAKEHUMAN
+
+needs_data = pytest.mark.skipif(not (MAKEHUMAN / "3dobjs").is_dir(), reason=f"MakeHuman data not found at {MAKEHUMAN}")
+
+
+@pytest.fixture(scope="module")
+def space():
+    if not (MAKEHUMAN / "3dobjs").is_dir():
+        pytest.skip(f"MakeHuman data not found at {MAKEHUMAN}")
+    return BodySpace(read_makehuman(MAKEHUMAN))
+
+
+def in_span_error(model, vertices: np.ndarray) -> float:
+    """Mean vertex distance (m) of ``vertices`` from their projection onto the model's span."""
+    delta = (vertices - model.template).reshape(-1)
+    projected = model.template.reshape(-1) + model.basis @ (model.basis.T @ delta)
+    return float(np.linalg.norm((projected - vertices.reshape(-1)).reshape(-1, 3), axis=1).mean())
+
+
+def test_macro_weights_are_makehumans_interpolation():
+    # MakeHuman's age rule: child → young between 0.1875 and 0.5; an unnamed average corner weighs nothing.
+    age = _hat_weights(np.array([0.0, 0.25, 0.5, 0.75, 1.0]), MACRO_CORNERS["age"])
+    np.testing.assert_allclose(age[1], [0, 1 - 0.0625 / 0.3125, 0.0625 / 0.3125, 0])
+    np.testing.assert_allclose(age[3], [0, 0, 0.5, 0.5])
+    np.testing.assert_allclose(age.sum(axis=1), 1.0)
+    height = _hat_weights(np.array([0.2, 0.5, 0.9]), MACRO_CORNERS["height"])
+    np.testing.assert_allclose(height, [[0.6, 0.4, 0], [0, 1, 0], [0, 0.2, 0.8]])
+
+
+def test_a_folder_of_another_layout_is_refused(tmp_path, capsys):
+    (tmp_path / "targets").mkdir()
+    out = tmp_path / "body.npz"
+    code, _, err = run(["model", "build-makehuman", str(tmp_path), "-o", str(out)], capsys)
+    assert code == 2 and "is not a MakeHuman data folder" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+
+
+def test_a_decompression_bomb_is_refused_after_the_cap(tmp_path):
+    for part in ("3dobjs", "targets/macrodetails", "mesh_metadata"):
+        (tmp_path / part).mkdir(parents=True)
+    (tmp_path / "mesh_metadata/basemesh_vertex_groups.json").write_text(json.dumps({"body": [[0, 2]]}))
+    (tmp_path / "targets/target.json").write_text("{}")
+    (tmp_path / "3dobjs/base.obj.gz").write_bytes(gzip.compress(b"v 0 0 0\nv 1 0 0\nv 0 1 0\ng body\nf 1 2 3\n"))
+    with gzip.open(tmp_path / "targets/macrodetails/bomb.target.gz", "wb", compresslevel=1) as handle:
+        handle.write(b"0" * (MAX_FILE_BYTES + 2))
+    with pytest.raises(StatfitError, match="decompresses to more than"):
+        read_makehuman(tmp_path)
+
+
+@needs_data
+def test_the_skin_is_a_closed_consistent_surface_in_metres(space):
+    vertices, faces = space.data.vertices, space.data.faces
+    assert vertices.shape == (13380, 3) and faces.shape == (26756, 3)
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    assert mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0
+    assert 1.5 < np.ptp(vertices[:, 1]) < 2.0  # a standing adult, in metres
+    regions = body_regions(space)
+    assert {"head", "arms", "legs", "torso", "left", "right"} <= set(regions)
+    assert vertices[regions["head"], 1].mean() > vertices[regions["torso"], 1].mean() > vertices[regions["legs"], 1].mean()
+    assert (vertices[regions["left"], 0] > 0).all() and (vertices[regions["right"], 0] < 0).all()
+
+
+@needs_data
+def test_the_model_reproduces_fresh_bodies_and_not_held_out_ones(space):
+    built = build_body_model(space, 200, 1000, seed=0)
+    model = built.model
+    mesh = trimesh.Trimesh(model.template, model.faces, process=False)
+    assert mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0
+    assert np.all(np.diff(built.variance_explained) >= 0) and built.variance_explained[-1] > 0.999
+    fresh = space.shapes(space.weights(np.random.default_rng(99), 4, "train"))
+    held_out = space.shapes(space.weights(np.random.default_rng(99), 4, "held_out"))
+    fresh_errors = [in_span_error(model, body) for body in fresh]
+    held_out_errors = [in_span_error(model, body) for body in held_out]
+    assert max(fresh_errors) < 0.0005  # bodies from the training distribution: within 0.5 mm on average
+    assert min(held_out_errors) > 5 * max(fresh_errors)  # held-out bodies lie outside the span
+    # the same seed builds the same model
+    again = build_body_model(space, 200, 1000, seed=0).model
+    np.testing.assert_array_equal(again.basis, model.basis)
+
+
+@needs_data
+def test_a_body_from_one_normal_map_on_the_command_line(tmp_path, capsys):
+    model, person, exr, camera, fit, gt = (tmp_path / name for name in
+                                           ("body.npz", "person.ply", "body.exr", "cam.json", "fit.ply", "gt.ply"))
+    code, out, err = run(["model", "build-makehuman", str(MAKEHUMAN), "-o", str(model), "--k", "40",
+                          "--samples", "400", "--json"], capsys)
+    assert code == 0, err
+    assert json.loads(out)["modes"] == 40 and load_model(model).num_vertices == 13380
+    assert run(["synth", "body", str(MAKEHUMAN), "--seed", "4", "-o", str(person)], capsys)[0] == 0
+    code, _, err = run(["synth", "normals", "--model", str(model), "--shape", str(person), "--yaw", "30",
+                        "--size", "160", "--out", str(exr), "--camera-out", str(camera), "--gt", str(gt)], capsys)
+    assert code == 0, err
+    code, _, err = run(["render", str(exr), "--camera", str(camera), "--model", str(model), "--out", str(fit),
+                        "--iterations", "150", "-q"], capsys)
+    assert code == 0, err
+    fitted, truth, template = read_mesh(fit)[0], read_mesh(gt)[0], load_model(model).template
+    aligned = lambda shape: umeyama(shape, truth, with_scale=True).apply(shape)  # noqa: E731
+    error = lambda shape: np.linalg.norm(aligned(shape) - truth, axis=1).mean()  # noqa: E731
+    assert error(fitted) < 0.8 * error(template)  # 150 iterations of a 40-mode model at 160 px
+    # a mesh of another topology is refused
+    sphere = tmp_path / "sphere.ply"
+    trimesh.creation.icosphere().export(sphere)
+    code, _, err = run(["synth", "normals", "--model", str(model), "--shape", str(sphere),
+                        "--out", str(tmp_path / "x.exr")], capsys)
+    assert code == 2 and "not in the model's topology" in err and not (tmp_path / "x.exr").exists()
