@@ -56,6 +56,9 @@ def base_argv(command: tuple[str, ...], inputs: Path, out: Path) -> list[str]:
                                 "--out-dir", str(o / "fits")],
         ("batch", "render"): ["batch", "render", str(i / "n.exr"), "--camera", str(i / "cam.json"), "--iterations", "2",
                               "-q", "--workers", "1", "--out-dir", str(o / "fits")],
+        # a folder that is not MakeHuman's: an accepted number still ends in one line and exit 2, nothing built
+        ("model", "build-makehuman"): ["model", "build-makehuman", str(i / "no-makehuman"), "-o", str(o / "b.npz")],
+        ("synth", "body"): ["synth", "body", str(i / "no-makehuman"), "-o", str(o / "b.ply")],
         ("model", "build-texture"): ["model", "build-texture", str(i / "img.png"), str(i / "mask.png"), "-o",
                                      str(o / "t.npz"), "--k", "1", "--size", "24x24"],
     }[command]

@@ -1,0 +1,62 @@
+"""Part 9: full bodies — building the MakeHuman body model, its file size, and `statfit render` on
+a body-sized normal map (issue 14's targets: build ≤ 2 min, npz ≤ 60 MB, render ≤ 2 min at 768²).
+
+Each step runs as the CLI command a user types, in a fresh process on a quiet machine (wall
+seconds include Python's start and the model's load). The accuracy of every method on held-out
+bodies is the study's (studies/study_body.py, docs/studies.md §13).
+"""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from common import MAKEHUMAN, Section, markdown_table
+
+FULL = {"k": 300, "samples": 5000, "size": 768}
+QUICK = {"k": 40, "samples": 400, "size": 256}
+
+
+def timed(*argv: str) -> tuple[float, str]:
+    """Wall seconds and stdout of ``statfit argv``."""
+    started = time.perf_counter()
+    done = subprocess.run([sys.executable, "-m", "statfit_cli.main", *argv], capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"statfit {' '.join(argv)} failed:\n{done.stderr[-2000:]}")
+    return time.perf_counter() - started, done.stdout
+
+
+def measure(quick: bool) -> dict:
+    config = QUICK if quick else FULL
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder)
+        model, person, exr, cam, fit = (str(path / n) for n in ("body.npz", "p.ply", "b.exr", "c.json", "f.ply"))
+        build_s, out = timed("model", "build-makehuman", str(MAKEHUMAN), "-o", model, "--k", str(config["k"]),
+                             "--samples", str(config["samples"]), "--seed", "0", "--json")
+        explained = json.loads(out)["variance_explained"]
+        timed("synth", "body", str(MAKEHUMAN), "--seed", "4", "-o", person)
+        timed("synth", "normals", "--model", model, "--shape", person, "--yaw", "30", "--size", str(config["size"]),
+              "--out", exr, "--camera-out", cam)
+        render_s, out = timed("render", exr, "--camera", cam, "--model", model, "--out", fit, "--json", "-q")
+        summary = json.loads(out)
+        return {**config, "build_seconds": build_s, "npz_mb": (path / "body.npz").stat().st_size / 1e6,
+                "variance_explained": explained, "render_wall_seconds": render_s,
+                "render_fit_seconds": summary["seconds"], "render_threads": summary.get("threads"),
+                "render_stage_seconds": summary["stage_seconds"]}
+
+
+def run(quick: bool, device: str, image_dir) -> Section:
+    data = measure(quick)
+    rows = [["model build-makehuman", f"k {data['k']}, {data['samples']} bodies", data["build_seconds"], "≤ 120 s"],
+            ["model file", "float32 shapedirs", f"{data['npz_mb']:.1f} MB", "≤ 60 MB"],
+            ["render (default)", f"{data['size']}² body map, wall", data["render_wall_seconds"], "≤ 120 s"],
+            ["render (default)", "of which the fit", data["render_fit_seconds"], ""]]
+    text = (markdown_table(["step", "size", "seconds (or size)", "target"], rows)
+            + "\n\nVariance explained by the first k modes: "
+            + ", ".join(f"{k}: {v:.4%}" for k, v in data["variance_explained"].items())
+            + ".\n\nThe fit's stages (s): "
+            + ", ".join(f"{k} {v:.1f}" for k, v in data["render_stage_seconds"].items()) + ".")
+    return Section("bodies", "Full bodies: building the MakeHuman model, rendering a body", text, data=data)
