@@ -151,6 +151,16 @@ def report(rows: list[dict]) -> str:
         best = min(errors, key=lambda m: errors[m] if np.isfinite(errors[m]) else np.inf)
         lines.append(f"| {seed}, yaw {yaw:.0f} | " + " | ".join(f"{errors[m]:.1f} ({unseen[m]:.1f})" for m in methods)
                      + f" | {best} |")
+    lines.append("\nPer body, both views averaged: aligned all-vertex mm (unseen mm).\n")
+    lines.append("| body | " + " | ".join(methods) + " | best |")
+    lines.append("|---|" + "---|" * (len(methods) + 1))
+    for seed in sorted({r["seed"] for r in rows}):
+        cell = {m: [r for r in rows if r["seed"] == seed and r["method"] == m] for m in methods}
+        full = {m: c for m, c in cell.items() if len(c) == len(VIEWS)}
+        mean = lambda m, key: np.mean([r["aligned"][key] for r in full[m]]) if m in full else np.nan  # noqa: E731
+        best = min(full, key=lambda m: mean(m, "all")) if full else "-"
+        lines.append(f"| {seed} | " + " | ".join(f"{mean(m, 'all'):.1f} ({mean(m, 'unseen'):.1f})" for m in methods)
+                     + f" | {best} |")
     return "\n".join(lines)
 
 
