@@ -129,12 +129,12 @@ def done_rows() -> list[dict]:
 def report(rows: list[dict]) -> str:
     methods = [m for m in METHODS if any(r["method"] == m for r in rows)]
     cases = sorted({(r["seed"], r["yaw"]) for r in rows})
-    lines = ["| method | all (raw) | all (scaled) | all | seen | unseen | unseen off-span | unseen normal ° | s per fit |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| method | fits | all (raw) | all (scaled) | all | seen | unseen | unseen off-span | unseen normal ° | s per fit |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for method in methods:
         mine = [r for r in rows if r["method"] == method]
         mean = lambda f: np.mean([f(r) for r in mine])  # noqa: E731
-        lines.append(f"| {method} | {mean(lambda r: r['raw']['all']):.1f} | {mean(lambda r: r['scaled']['all']):.1f} | "
+        lines.append(f"| {method} | {len(mine)} | {mean(lambda r: r['raw']['all']):.1f} | {mean(lambda r: r['scaled']['all']):.1f} | "
                      f"{mean(lambda r: r['aligned']['all']):.1f} | "
                      f"{mean(lambda r: r['aligned']['seen']):.1f} | {mean(lambda r: r['aligned']['unseen']):.1f} | "
                      f"{mean(lambda r: r['off_span_unseen_mm']):.2f} | {mean(lambda r: r['normal_angle_unseen_deg']):.1f} | "
