@@ -29,6 +29,7 @@ import os
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -44,23 +45,29 @@ VIEWS = ((30.0, 10.0), (-60.0, 10.0))
 METHODS = ("default", "hybrid", "statistical", "laplacian", "pca", "regularized", "none")
 
 
-def body_model():
-    """The study's model (built into ``MODEL_CACHE`` the first time, ~25 s)."""
+@lru_cache(maxsize=1)
+def body_space():
+    """The MakeHuman targets, read once per process (~8 s)."""
     from statfit.importers.makehuman import read_makehuman
-    from statfit.importers.makehuman_shapes import BodySpace, body_regions, build_body_model
+    from statfit.importers.makehuman_shapes import BodySpace
+
+    return BodySpace(read_makehuman(MAKEHUMAN))
+
+
+@lru_cache(maxsize=1)
+def body_model():
+    """The study's model (built into ``MODEL_CACHE`` the first time, ~25 s), loaded once per process."""
+    from statfit.importers.makehuman_shapes import body_regions, build_body_model
     from statfit.model import load_model, save_model
 
     if not MODEL_CACHE.exists():
-        space = BodySpace(read_makehuman(MAKEHUMAN))
+        space = body_space()
         save_model(build_body_model(space, 300, 5000, 0, body_regions(space)).model, MODEL_CACHE, np.float32)
     return load_model(MODEL_CACHE)
 
 
 def held_out_body(seed: int) -> np.ndarray:
-    from statfit.importers.makehuman import read_makehuman
-    from statfit.importers.makehuman_shapes import BodySpace
-
-    space = BodySpace(read_makehuman(MAKEHUMAN))
+    space = body_space()
     return space.shapes(space.weights(np.random.default_rng(seed), 1, "held_out"))[0]
 
 

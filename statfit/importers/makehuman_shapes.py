@@ -85,8 +85,13 @@ class BodySpace:
                       if (corners := _macro_corners(name)) is not None]
         self.local = _local_sliders(data.sliders, column)
         self.asym = _asym_pairs(self.names, column)
-        self.expression = [(column[name], RACES.index(name.split("/")[2])) for name in self.names
-                           if name.startswith("expression/units/") and name.split("/")[2] in RACES]
+        expression = [name for name in self.names
+                      if name.startswith("expression/units/") and name.split("/")[2] in RACES]
+        units = sorted({name.rsplit("/", 1)[1] for name in expression})
+        # (target column, race, expression unit) of each per-race expression target
+        self.expression = [(column[name], RACES.index(name.split("/")[2]), units.index(name.rsplit("/", 1)[1]))
+                           for name in expression]
+        self.expression_units = len(units)
         if not self.macro:
             raise StatfitError("the MakeHuman folder has no macrodetails targets named as MakeHuman names them")
 
@@ -121,10 +126,9 @@ class BodySpace:
         if held_out:
             for positive, negative in self.asym:
                 _add_signed(weights, np.clip(rng.normal(0.0, ASYM_STD, size=count), -1, 1), positive, negative)
-            units = sorted({name.rsplit("/", 1)[1] for name in self.names if name.startswith("expression/units/")})
-            strengths = np.clip(np.abs(rng.normal(0.0, EXPRESSION_STD, size=(count, len(units)))), 0.0, 1.0)
-            for col, race in self.expression:
-                weights[:, col] += races[:, race] * strengths[:, units.index(self.names[col].rsplit("/", 1)[1])]
+            strengths = np.clip(np.abs(rng.normal(0.0, EXPRESSION_STD, size=(count, self.expression_units))), 0.0, 1.0)
+            for col, race, unit in self.expression:
+                weights[:, col] += races[:, race] * strengths[:, unit]
         return weights
 
     def shapes(self, weights: np.ndarray) -> np.ndarray:
