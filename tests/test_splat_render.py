@@ -11,7 +11,6 @@ import torch
 from statfit.camera import Camera
 from statfit.errors import StatfitError
 from statfit.splat import MeshSplats, Surfels, render_surfels
-from statfit.splat.raster import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE
 
 
 def _camera(width: int = 14, height: int = 11) -> Camera:
@@ -32,7 +31,8 @@ def _random_surfels(rng: np.random.Generator, count: int, opacity_high: float = 
 
 
 def _brute_force(surfels: Surfels, camera: Camera, background: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Every pixel against every surfel, one at a time: the 2DGS formulas written out plainly."""
+    """Every pixel against every surfel, one at a time: the 2DGS formulas written out plainly
+    (α clamped to 0.99, pairs below α 1/255 dropped, compositing stopped below 1e-4 light left)."""
     pose, K = camera.world_to_camera.numpy(), camera.K.numpy()
     c = surfels.centres.numpy() @ pose[:3, :3].T + pose[:3, 3]
     tu, tv = surfels.tangent_u.numpy() @ pose[:3, :3].T, surfels.tangent_v.numpy() @ pose[:3, :3].T
@@ -53,8 +53,8 @@ def _brute_force(surfels: Surfels, camera: Camera, background: np.ndarray) -> tu
                 u, v = hit @ tu[i] / scales[i, 0], hit @ tv[i] / scales[i, 1]
                 projected = (K @ c[i])[:2] / c[i, 2]
                 lowpass = math.exp(-np.sum((np.array([col + 0.5, row + 0.5]) - projected) ** 2))
-                alpha = min(MAX_ALPHA, opacity[i] * max(math.exp(-0.5 * (u * u + v * v)) if t > 0 else 0.0, lowpass))
-                if alpha < MIN_ALPHA or light < MIN_TRANSMITTANCE:
+                alpha = min(0.99, opacity[i] * max(math.exp(-0.5 * (u * u + v * v)) if t > 0 else 0.0, lowpass))
+                if alpha < 1 / 255 or light < 1e-4:
                     continue
                 colour += light * alpha * colours[i]
                 light *= 1 - alpha
