@@ -9,10 +9,10 @@ import typer
 from statfit import __version__
 from statfit.errors import StatfitError
 from statfit.threads import flush_denormals_everywhere
-from statfit_cli import batch, demo, evaluate, inpaint, model, register, render, synth, texture
+from statfit_cli import batch, demo, evaluate, inpaint, model, register, render, splat, synth, texture
 
 app = typer.Typer(
-    help="Fit a template mesh to limited observations (a partial scan, or a normal map) with statistical gradient filtering.\n\n"
+    help="Fit a template mesh to limited observations (a partial scan, a normal map, or photographs) with statistical gradient filtering.\n\n"
          "Start with `statfit demo`; `statfit COMMAND --help` explains each command.",
     no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False, rich_markup_mode=None,
 )
@@ -33,6 +33,8 @@ app.command("render")(render.render)
 app.command("demo")(demo.demo)
 app.command("eval")(evaluate.evaluate)
 app.command("inpaint")(inpaint.inpaint)
+app.command("splat")(splat.splat)
+app.command("splat-render")(splat.splat_render)
 app.add_typer(synth.app, name="synth")
 app.add_typer(batch.app, name="batch")
 model.app.command("build-texture")(texture.build_texture)

@@ -11,9 +11,12 @@ from statfit.importers.makehuman import read_makehuman
 from statfit.importers.makehuman_shapes import BodySpace
 from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, points_bytes, read_mesh, write_atomic
 from statfit.io.normalmap import write_camera, write_normal_map
+from statfit.io.image import write_image
 from statfit.io.landmarks import landmarks_text
+from statfit.io.views import CAMERAS_FILE, views_json
 from statfit.scanner import UNITS_PER_METRE, realistic_scan
 from statfit.synth import camera_for_view, load_delta, render_target, sample_target, scan_from_view
+from statfit.synth_views import generated_albedo, held_out_split, hemisphere_cameras, photograph
 from statfit.importers.cache import open_model
 from statfit_cli.common import ModelOption, seed_option, within
 
@@ -180,3 +183,49 @@ def body(
     space = BodySpace(read_makehuman(folder))
     weights = space.weights(np.random.default_rng(seed), 1, "held_out" if held_out else "train")
     write_atomic(out, mesh_bytes(space.shapes(weights)[0], space.data.faces, mesh_format(out)))
+
+
+@app.command("views")
+def views(
+    out: Path = typer.Option(..., "--out", "-o", help="Folder to write: view_000.png … (RGBA: colour over black, "
+                             "alpha = coverage), cameras.json (one camera per view, with its split) and gt.ply.",
+                             show_default=False),
+    model_path: Path = ModelOption,
+    seed: int = SeedOption,
+    sigma: float = SigmaOption,
+    count: int = typer.Option(24, "--views", help="Number of cameras, spread over the front hemisphere (up to 70° "
+                              "from the front).", callback=within(1, 1000)),
+    size: int = typer.Option(256, help="Image width and height, pixels.", callback=within(16, 4096)),
+    fov: float = typer.Option(30.0, help="Vertical field of view, degrees.", callback=within(1, 170)),
+    test_every: int = typer.Option(6, help="Hold out every Nth view for testing (split 'test'; 0: none).",
+                                   callback=within(0, 1000)),
+    delta: Path = DeltaOption,
+    delta_name: str = DeltaNameOption,
+    delta_weight: float = DeltaWeightOption,
+) -> None:
+    """Photographs of a textured model sample (a generated albedo, a fixed light) from many
+    cameras, with the cameras and the ground truth: the input of `statfit splat`.
+
+        statfit synth views --model model.npz --seed 2 --views 24 --size 256 --out views/
+        statfit synth views --model ict.npz --delta expressions.npz --delta-name jawOpen --out views/
+    """
+    check_delta_options(delta, delta_name)
+    if out.exists() and not out.is_dir():
+        raise StatfitError(f"{out} exists and is not a folder")
+    model = open_model(model_path)
+    rng = np.random.default_rng(seed)
+    shape = _target(model, rng, sigma, delta, delta_name, delta_weight)
+    albedo = generated_albedo(shape, rng)
+    cameras = hemisphere_cameras(shape, count, size, fov)
+    splits = held_out_split(count, test_every)
+    if "train" not in splits:
+        raise StatfitError(f"--test-every {test_every} holds out every view; keep at least one for training")
+    out.mkdir(parents=True, exist_ok=True)
+    entries = []
+    for index, (camera, split) in enumerate(zip(cameras, splits)):
+        colour, alpha = photograph(shape, model.faces, albedo, camera)
+        name = f"view_{index:03d}.png"
+        write_image(out / name, np.concatenate([colour, alpha[..., None]], axis=-1))
+        entries.append((name, camera, split))
+    write_atomic(out / "gt.ply", mesh_bytes(shape, model.faces, "ply"))
+    write_atomic(out / CAMERAS_FILE, views_json(entries, gt="gt.ply"))  # last: the folder is complete

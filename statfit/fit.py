@@ -15,7 +15,8 @@ from statfit.errors import DivergenceError
 class Objective(Protocol):
     """A data term: ``prepare`` does non-differentiable work (correspondences, visibility), ``reset``
     drops what ``prepare`` keeps (a new stage starts afresh), ``__call__`` returns named loss terms
-    (scalars) differentiable w.r.t. ``vertices``."""
+    (scalars) differentiable w.r.t. ``vertices``. An objective with parameters of its own (the
+    splats' colours) has an ``optimizer`` attribute; the loop steps it with the vertices'."""
 
     def prepare(self, vertices: torch.Tensor, iteration: int) -> None: ...
 
@@ -97,6 +98,7 @@ def _loop(param: Parametrization, optimizer: torch.optim.Optimizer, objective: O
           on_snapshot: Snapshot | None) -> FitResult:
     start = time.perf_counter()
     terms: dict[str, float] = {}
+    optimizers = [optimizer, *filter(None, [getattr(objective, "optimizer", None)])]
     for step in range(iterations):
         it = first_iteration + step
         with timer("filter"):
@@ -109,10 +111,12 @@ def _loop(param: Parametrization, optimizer: torch.optim.Optimizer, objective: O
             losses = objective(x) | param.prior(x)
             loss = sum(losses.values())
         with timer("backward"):
-            optimizer.zero_grad(set_to_none=True)
+            for each in optimizers:
+                each.zero_grad(set_to_none=True)
             loss.backward()
         with timer("step"):
-            optimizer.step()
+            for each in optimizers:
+                each.step()
         if step % record_every == 0 or step == iterations - 1:
             terms = {k: float(v.detach()) for k, v in losses.items()}
             terms["total"] = sum(terms.values())

@@ -29,7 +29,7 @@ from statfit.methods import resolve
 from statfit.settings import FitSpace, Settings
 from statfit.model import StatModel, region_triangles
 from statfit.objectives.normals import SILHOUETTE_WEIGHT, NormalMapObjective
-from statfit.pose import fit_pose
+from statfit.pose import camera_in_frame, fit_pose
 from statfit.device import resolve_device
 from statfit.register import UNIT_MISMATCH_FACTOR
 from statfit.render import Camera, MeshAdjacency, rasterize
@@ -76,17 +76,6 @@ def camera_space_normals(normal_map: NormalMap, camera: Camera, space: str = "wo
     elif convention == "opengl":
         normals = normals * np.array([1.0, -1.0, -1.0])
     return np.where(normal_map.mask[..., None], normals, 0.0)
-
-
-def camera_in_frame(camera: Camera, frame: Frame, pose: Similarity = Similarity()) -> Camera:
-    """The camera that sees unit-frame points x as ``camera`` sees world points
-    ``frame.from_unit(pose.apply(x))`` (same image; camera coordinates divided by the scales)."""
-    R, t = camera.rotation.numpy(), camera.world_to_camera[:3, 3].numpy()
-    scale = frame.scale * pose.scale
-    matrix = np.eye(4)
-    matrix[:3, :3] = R @ pose.rotation
-    matrix[:3, 3] = (R @ (frame.scale * pose.translation + frame.center) + t) / scale
-    return Camera(camera.width, camera.height, camera.K, matrix)
 
 
 def check_framing(template: np.ndarray, camera: Camera, mask: np.ndarray, align: str) -> None:

@@ -22,12 +22,13 @@ from statfit.optim import UniformAdam
 from statfit.parametrize import Filter, FilteredVertices, PCACoefficients, RegularizedVertices
 from statfit.settings import MAX_ITERATIONS, FitSpace, Settings, check_int
 
-JOBS = ("register", "render", "inpaint")
+JOBS = ("register", "render", "inpaint", "splat")
 # The paper's iteration counts per job: 500 for scan registration, 3000 for inverse rendering.
 PAPER_ITERATIONS = {"register": 500, "render": 3000}
 # The Gauss–Newton pca stage stops by itself (31–50 iterations on the study's cases, docs/studies.md
 # §9); this only bounds it.
 GAUSS_NEWTON_ITERATIONS = 200
+SPLAT_ITERATIONS = 1000
 
 Builder = Callable[[Settings, FitSpace, torch.Tensor], tuple[Parametrization, torch.optim.Optimizer]]
 
@@ -133,23 +134,27 @@ for _method in (
            paper=Settings("statistical", 500, 0.01, beta=30.0),
            tuned={"register": Settings("statistical", 1000, 0.05, beta=1000.0, mode_gain=1.0),
                   "render": Settings("statistical", 3000, 0.01, beta=1000.0, mode_gain=1.0),
-                  "inpaint": Settings("statistical", 300, 0.01, beta=30.0)}),
+                  "inpaint": Settings("statistical", 300, 0.01, beta=30.0),
+                  "splat": Settings("statistical", SPLAT_ITERATIONS, 0.01, beta=1000.0, mode_gain=1.0)}),
     Method("laplacian", filtered_method(laplacian_filter), needs_model=False,
            summary="x = x0 + (I + λL)⁻¹ u (Nicolet et al. 2021)",
            paper=Settings("laplacian", 500, 0.01, lam=19.0),
            tuned={"register": Settings("laplacian", 1000, 0.1, lam=300.0),
                   "render": Settings("laplacian", 3000, 0.003, lam=19.0),
-                  "inpaint": Settings("laplacian", 300, 0.01, lam=19.0)}),
+                  "inpaint": Settings("laplacian", 300, 0.01, lam=19.0),
+                  "splat": Settings("laplacian", SPLAT_ITERATIONS, 0.003, lam=19.0)}),
     Method("hybrid", filtered_method(hybrid_filter), summary="x = x0 + F u, F = αUUᵀ + (1 − α)(I + λL)⁻¹",
            paper=Settings("hybrid", 500, 0.01, beta=30.0, lam=19.0),
            tuned={"register": Settings("hybrid", 1000, 0.03, beta=30.0, lam=19.0),
                   "render": Settings("hybrid", 3000, 0.01, beta=30.0, lam=19.0, mode_gain=1.0),
-                  "inpaint": Settings("hybrid", 300, 0.01, beta=30.0, lam=19.0)}),
+                  "inpaint": Settings("hybrid", 300, 0.01, beta=30.0, lam=19.0),
+                  "splat": Settings("hybrid", SPLAT_ITERATIONS, 0.01, beta=30.0, lam=19.0, mode_gain=1.0)}),
     Method("pca", _pca, summary="x = x̄ + U diag(std) c: the model's coefficients only",
            paper=Settings("pca", 500, 5.0),
            tuned={"register": Settings("pca", GAUSS_NEWTON_ITERATIONS, 0.0, optimizer="gauss-newton", noise=0.003),
                   "render": Settings("pca", 3000, 0.05),
-                  "inpaint": Settings("pca", 300, 0.01)}),
+                  "inpaint": Settings("pca", 300, 0.01),
+                  "splat": Settings("pca", SPLAT_ITERATIONS, 0.05)}),
     Method("regularized", _regularized, summary="free x, prior β/N ‖(I − UUᵀ)(x − x̄)‖²",
            paper=Settings("regularized", 500, 0.01, beta=10.0),
            tuned={"register": Settings("regularized", 1000, 0.1, beta=30.0),
@@ -158,7 +163,8 @@ for _method in (
            paper=Settings("none", 500, 0.01),
            tuned={"register": Settings("none", 1000, 0.003),
                   "render": Settings("none", 3000, 0.001),
-                  "inpaint": Settings("none", 300, 0.01)}),
+                  "inpaint": Settings("none", 300, 0.01),
+                  "splat": Settings("none", SPLAT_ITERATIONS, 0.001)}),
 ):
     add_method(_method)
 
@@ -184,6 +190,8 @@ PIPELINES: dict[str, dict[str, Pipeline]] = {
     "render": {"default": Pipeline((Settings("hybrid", 150, 0.05, beta=30.0, lam=19.0, mode_gain=1.0),
                                     Settings("hybrid", 300, 0.05, beta=10.0, lam=19.0, mode_gain=1.0)),
                                    "the rendering speed study's schedule")},
+    "splat": {"default": Pipeline((Settings("statistical", SPLAT_ITERATIONS, 0.05, beta=1000.0, mode_gain=1.0),),
+                                  "the splatting study's choice")},
 }
 
 

@@ -8,6 +8,8 @@ import numpy as np
 import torch
 
 from statfit.align import Similarity
+from statfit.camera import Camera
+from statfit.frame import Frame
 
 Loss = Callable[[torch.Tensor], dict[str, torch.Tensor]]
 
@@ -92,3 +94,14 @@ def fit_pose(vertices: torch.Tensor, loss: Loss, *, with_scale: bool = False, it
     # y = s R (x − c) + c + t  ⇒  t' = c + t − s R c
     pose = Similarity(scale, rotation, centre64 + translation.double().cpu().numpy() - scale * rotation @ centre64)
     return PoseFit(pose, best_shape, best_value)
+
+
+def camera_in_frame(camera: Camera, frame: Frame, pose: Similarity = Similarity()) -> Camera:
+    """The camera that sees unit-frame points x as ``camera`` sees world points
+    ``frame.from_unit(pose.apply(x))`` (same image; camera coordinates divided by the scales)."""
+    R, t = camera.rotation.numpy(), camera.world_to_camera[:3, 3].numpy()
+    scale = frame.scale * pose.scale
+    matrix = np.eye(4)
+    matrix[:3, :3] = R @ pose.rotation
+    matrix[:3, 3] = (R @ (frame.scale * pose.translation + frame.center) + t) / scale
+    return Camera(camera.width, camera.height, camera.K, matrix)

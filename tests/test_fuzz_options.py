@@ -25,7 +25,10 @@ def inputs(tmp_path_factory) -> Path:
     for argv in (["synth", "scan", "--out", str(folder / "scan.ply"), "--gt", str(folder / "gt.ply")],
                  ["synth", "normals", "--size", "48", "--out", str(folder / "n.exr"), "--camera-out",
                   str(folder / "cam.json")],
-                 *(["model", "sample", "-o", str(folder / f"s{i}.ply"), "--seed", str(i)] for i in range(3))):
+                 *(["model", "sample", "-o", str(folder / f"s{i}.ply"), "--seed", str(i)] for i in range(3)),
+                 ["synth", "views", "--views", "3", "--size", "24", "--out", str(folder / "views")],
+                 ["splat", str(folder / "views"), "--iterations", "2", "-q", "--out", str(folder / "sfit.ply"),
+                  "--splats", str(folder / "splats.ply")]):
         assert run_cli(argv)[0] == 0, argv
     image = np.random.default_rng(0).random((24, 24, 3)).astype(np.float32)
     write_image(folder / "img.png", image)
@@ -59,6 +62,10 @@ def base_argv(command: tuple[str, ...], inputs: Path, out: Path) -> list[str]:
         # a folder that is not MakeHuman's: an accepted number still ends in one line and exit 2, nothing built
         ("model", "build-makehuman"): ["model", "build-makehuman", str(i / "no-makehuman"), "-o", str(o / "b.npz")],
         ("synth", "body"): ["synth", "body", str(i / "no-makehuman"), "-o", str(o / "b.ply")],
+        ("synth", "views"): ["synth", "views", "--views", "2", "--size", "24", "--out", str(o / "v")],
+        ("splat",): ["splat", str(i / "views"), "--iterations", "2", "-q", "--out", str(o / "fit.ply")],
+        ("splat-render",): ["splat-render", str(i / "splats.ply"), str(i / "sfit.ply"), "--camera",
+                            str(i / "views" / "cameras.json"), "--view", "0", "--out", str(o / "r.png")],
         ("model", "build-texture"): ["model", "build-texture", str(i / "img.png"), str(i / "mask.png"), "-o",
                                      str(o / "t.npz"), "--k", "1", "--size", "24x24"],
     }[command]

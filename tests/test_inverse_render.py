@@ -9,7 +9,8 @@ from scipy.spatial.transform import Rotation
 from statfit.align import Similarity
 from statfit.errors import StatfitError
 from statfit.frame import Frame
-from statfit.inverse_render import camera_in_frame, camera_space_normals, downsampled, reconstruct
+from statfit.pose import camera_in_frame
+from statfit.inverse_render import camera_space_normals, downsampled, reconstruct
 from statfit.normal_map import NormalMap
 from statfit.objectives.normals import NormalMapObjective
 from statfit.pose import fit_pose

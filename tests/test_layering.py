@@ -13,12 +13,13 @@ LAYERS = ("structures", "io", "model", "core", "jobs", "cli")
 # Module-name prefixes per layer; the longest matching prefix decides, and "core" is the rest of statfit.
 PREFIXES = {
     "statfit.errors": "structures", "statfit.frame": "structures", "statfit.camera": "structures",
-    "statfit.normal_map": "structures", "statfit.scan": "structures",
+    "statfit.normal_map": "structures", "statfit.scan": "structures", "statfit.views": "structures",
     "statfit.io": "io",
     "statfit.model": "model", "statfit.pca": "model", "statfit.build": "model", "statfit.importers": "model",
     "statfit.texture.model": "model", "statfit.texture.resample": "model",
     "statfit.register": "jobs", "statfit.inverse_render": "jobs", "statfit.synth": "jobs", "statfit.scanner": "jobs",
-    "statfit.preview": "jobs",
+    "statfit.preview": "jobs", "statfit.splatting": "jobs", "statfit.synth_views": "jobs",
+    "statfit.splat_preview": "jobs",
     "statfit.texture.inpaint": "jobs", "statfit.texture.preview": "jobs", "statfit.batch": "jobs",
     "statfit_cli": "cli",
 }

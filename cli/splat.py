@@ -1,0 +1,153 @@
+"""``statfit splat`` (fit a model with splats bound to it to photographs) and ``statfit splat-render``
+(render such splats from any camera)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+import typer
+
+from statfit.camera import Camera
+from statfit.device import resolve_device
+from statfit.errors import StatfitError
+from statfit.importers.cache import open_model
+from statfit.io.files import existing_file
+from statfit.io.image import encoded_image, image_suffix
+from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_mesh
+from statfit.io.splats import read_splats, splats_bytes
+from statfit.io.views import read_views
+from statfit.objectives.images import MASK_WEIGHT
+from statfit.splat.binding import PATTERNS
+from statfit.splatting import fit_views, render_splats, splat_records, splat_stages, splats_from_records
+from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
+                                LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
+                                PowerOption, PresetOption, QuietOption, SeedOption, ThreadsOption, setting_overrides,
+                                within)
+from statfit_cli.runner import finish, fit_run
+
+MAX_CAMERA_BYTES = 16 << 20
+
+
+def splat(
+    folder: Path = typer.Argument(..., metavar="VIEWS", help="Folder with cameras.json and the photographs it names "
+                                  "(docs/formats.md; `statfit synth views` makes one).", show_default=False),
+    model_path: Path = ModelOption,
+    k: int = KOption,
+    method: str = MethodOption,
+    preset: str = PresetOption,
+    out: Path = typer.Option(Path("splat_fit.ply"), "--out", "-o", help="Fitted mesh (.ply or .obj)."),
+    splats_out: Path = typer.Option(None, "--splats", help="Splats bound to the fitted mesh (PLY; "
+                                    "`statfit splat-render` draws them).", show_default=False),
+    preview: Path = typer.Option(None, help="PNG: a held-out view's photograph, the splats, their error and the "
+                                 "fitted mesh.", show_default=False),
+    log: Path = LogOption,
+    per_triangle: int = typer.Option(1, help="Splats per triangle: 1, 3 or 4."),
+    views_per_step: int = typer.Option(1, help="Training views rendered per iteration.", callback=within(1, 1000)),
+    mask_weight: float = typer.Option(MASK_WEIGHT, help="Weight of the mask term (rendered opacity vs the views' "
+                                      "alpha; 0: off).", callback=within(0, 1e6)),
+    device: str = DeviceOption,
+    threads: int = ThreadsOption,
+    seed: int = SeedOption,
+    iterations: int = IterationsOption,
+    lr: float = LrOption,
+    beta: float = BetaOption,
+    power: float = PowerOption,
+    lam: float = LamOption,
+    laplacian: str = LaplacianOption,
+    mode_gain: float = ModeGainOption,
+    quiet: bool = QuietOption,
+    json_out: bool = JsonOption,
+) -> None:
+    """Fit the model's template to photographs from known cameras with 2D Gaussian splats bound to
+    its triangles (L1 + D-SSIM, as 3D Gaussian splatting); the vertices move through the method's
+    filter, the splats' colours, opacities and sizes are fitted with them. Views marked 'test'
+    are held out and scored (PSNR, SSIM) after the fit.
+
+        statfit synth views --model model.npz --seed 2 --views 24 --size 256 --out views/
+        statfit splat views/ --model model.npz --out fit.ply --splats splats.ply --preview fit.png
+    """
+    if per_triangle not in PATTERNS:
+        raise StatfitError(f"--per-triangle must be one of {', '.join(map(str, PATTERNS))}, got {per_triangle}")
+    stages = splat_stages(method, preset, **setting_overrides(iterations, lr, beta, power, lam, laplacian,
+                                                              mode_gain))
+    torch_device = resolve_device(device)
+    for target in (out, splats_out, preview, log):
+        if target is not None:
+            check_writable(target)
+    mesh_format(out)
+    views = read_views(folder)
+    train = sum(view.split == "train" for view in views)
+    if views_per_step > train:
+        raise StatfitError(f"--views-per-step {views_per_step} is more than the {train} training views")
+    model = open_model(model_path, k)
+    header = dict(method=method, preset=preset, stages=[s.describe() for s in stages], model=model.source,
+                  modes=model.num_modes, input=str(folder), views=len(views), train_views=train,
+                  size=list(views[0].image.shape[:2]), per_triangle=per_triangle, views_per_step=views_per_step,
+                  mask_weight=mask_weight, device=str(torch_device), threads=threads, seed=seed)
+    with fit_run("splat", log, folder.name or str(folder), sum(s.iterations for s in stages), quiet, **header) as run:
+        result = fit_views(model, views, stages=stages, per_triangle=per_triangle, views_per_step=views_per_step,
+                           mask_weight=mask_weight, device=str(torch_device), seed=seed, on_record=run.on_record,
+                           threads=threads)
+    vertices = result.fit.vertices
+    summary = {"input": str(folder), "output": str(out), "method": method, "iterations": result.fit.iterations,
+               "final_loss": result.fit.loss, "seconds": result.fit.seconds,
+               "stage_seconds": result.fit.stage_seconds, "splats": len(result.splats),
+               "held_out": result.mean_scores("test"), "train": result.mean_scores("train"),
+               "views": result.scores}
+    outputs = {out: mesh_bytes(vertices, model.faces, mesh_format(out))}
+    if splats_out is not None:
+        outputs[splats_out] = splats_bytes(splat_records(result.splats, vertices), len(model.faces))
+    if preview is not None:
+        from statfit.splat_preview import splat_preview_png
+        shown = next((view for view in views if view.split == "test"), views[0])
+        outputs[preview] = splat_preview_png(shown.image, result.splats, vertices, model.faces, shown.camera,
+                                             f"{shown.split} view {shown.name}")
+    finish(run, summary, outputs, json_out)
+
+
+def splat_render(
+    splats_path: Path = typer.Argument(..., metavar="SPLATS.PLY", help="Splats from `statfit splat --splats`.",
+                                       show_default=False),
+    mesh_path: Path = typer.Argument(..., metavar="MESH", help="The mesh they are bound to (e.g. the fit), or any "
+                                     "mesh of the same topology: the splats follow it.", show_default=False),
+    camera_path: Path = typer.Option(..., "--camera", "-c", help="A camera JSON, or a views folder's cameras.json "
+                                     "with --view.", show_default=False),
+    view: int = typer.Option(None, help="Which camera of a cameras.json (0-based).", show_default=False),
+    out: Path = typer.Option(..., "--out", "-o", help="Image to write (.png: RGBA, alpha = splat opacity; .exr).",
+                             show_default=False),
+) -> None:
+    """Render splats bound to a mesh from a camera (a novel view, or a held-out one).
+
+        statfit splat-render splats.ply fit.ply --camera views/cameras.json --view 3 --out novel.png
+    """
+    suffix = image_suffix(out)
+    check_writable(out)
+    camera = _camera(camera_path, view)
+    vertices, faces = read_mesh(mesh_path)
+    splats = splats_from_records(read_splats(splats_path, len(faces)), torch.as_tensor(faces, dtype=torch.long))
+    colour, alpha = render_splats(splats, vertices, camera)
+    from statfit.io.mesh import write_atomic
+    write_atomic(out, encoded_image(np.concatenate([colour, alpha[..., None]], axis=-1), suffix))
+
+
+def _camera(path: Path, view: int | None) -> Camera:
+    """The camera in ``path``: a camera JSON, or entry ``view`` of a views folder's cameras.json."""
+    path = existing_file(path, "camera file")
+    if path.stat().st_size > MAX_CAMERA_BYTES:
+        raise StatfitError(f"{path} is larger than {MAX_CAMERA_BYTES >> 20} MiB: not a camera file")
+    try:
+        data = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise StatfitError(f"{path} is not valid JSON: {exc}") from None
+    if isinstance(data, dict) and "views" in data:
+        entries = data["views"]
+        if view is None:
+            raise StatfitError(f"{path} holds {len(entries)} cameras: choose one with --view")
+        if not isinstance(entries, list) or not 0 <= view < len(entries) or not isinstance(entries[view], dict):
+            raise StatfitError(f"{path} has no view {view} (it has {len(entries) if isinstance(entries, list) else 0})")
+        return Camera.from_dict(entries[view].get("camera"))
+    if view is not None:
+        raise StatfitError(f"{path} is a single camera; drop --view")
+    return Camera.from_dict(data)
