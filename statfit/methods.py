@@ -28,7 +28,7 @@ PAPER_ITERATIONS = {"register": 500, "render": 3000}
 # The Gauss–Newton pca stage stops by itself (31–50 iterations on the study's cases, docs/studies.md
 # §9); this only bounds it.
 GAUSS_NEWTON_ITERATIONS = 200
-SPLAT_ITERATIONS = 1000
+SPLAT_ITERATIONS = 400
 
 Builder = Callable[[Settings, FitSpace, torch.Tensor], tuple[Parametrization, torch.optim.Optimizer]]
 
@@ -135,7 +135,7 @@ for _method in (
            tuned={"register": Settings("statistical", 1000, 0.05, beta=1000.0, mode_gain=1.0),
                   "render": Settings("statistical", 3000, 0.01, beta=1000.0, mode_gain=1.0),
                   "inpaint": Settings("statistical", 300, 0.01, beta=30.0),
-                  "splat": Settings("statistical", SPLAT_ITERATIONS, 0.01, beta=1000.0, mode_gain=1.0)}),
+                  "splat": Settings("statistical", SPLAT_ITERATIONS, 0.05, beta=1000.0, mode_gain=1.0)}),
     Method("laplacian", filtered_method(laplacian_filter), needs_model=False,
            summary="x = x0 + (I + λL)⁻¹ u (Nicolet et al. 2021)",
            paper=Settings("laplacian", 500, 0.01, lam=19.0),
@@ -190,8 +190,9 @@ PIPELINES: dict[str, dict[str, Pipeline]] = {
     "render": {"default": Pipeline((Settings("hybrid", 150, 0.05, beta=30.0, lam=19.0, mode_gain=1.0),
                                     Settings("hybrid", 300, 0.05, beta=10.0, lam=19.0, mode_gain=1.0)),
                                    "the rendering speed study's schedule")},
-    "splat": {"default": Pipeline((Settings("statistical", SPLAT_ITERATIONS, 0.05, beta=1000.0, mode_gain=1.0),),
-                                  "the splatting study's choice")},
+    "splat": {"default": Pipeline((Settings("statistical", 300, 0.05, beta=1000.0, mode_gain=1.0),
+                                   Settings("none", 100, 0.0003)),
+                                  "statistical for the shape, then a short unfiltered refinement")},
 }
 
 
