@@ -8,25 +8,13 @@ bodies is the study's (studies/study_body.py, docs/studies.md §13).
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 import tempfile
-import time
 from pathlib import Path
 
-from common import MAKEHUMAN, Section, markdown_table
+from common import MAKEHUMAN, Section, markdown_table, timed_statfit as timed
 
 FULL = {"k": 300, "samples": 5000, "size": 768}
 QUICK = {"k": 40, "samples": 400, "size": 256}
-
-
-def timed(*argv: str) -> tuple[float, str]:
-    """Wall seconds and stdout of ``statfit argv``."""
-    started = time.perf_counter()
-    done = subprocess.run([sys.executable, "-m", "statfit_cli.main", *argv], capture_output=True, text=True)
-    if done.returncode != 0:
-        raise RuntimeError(f"statfit {' '.join(argv)} failed:\n{done.stderr[-2000:]}")
-    return time.perf_counter() - started, done.stdout
 
 
 def measure(quick: bool) -> dict:

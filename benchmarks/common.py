@@ -131,3 +131,12 @@ def save_figure(fig: Any, path: Path, dpi: int = 100) -> None:
 def save_json(path: Path, data: Any) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(data, indent=1))
+
+
+def timed_statfit(*argv: str) -> tuple[float, str]:
+    """Wall seconds and stdout of ``statfit argv`` run in a fresh process (a failure raises, with its stderr)."""
+    started = time.perf_counter()
+    done = subprocess.run([sys.executable, "-m", "statfit_cli.main", *argv], capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"statfit {' '.join(argv)} failed:\n{done.stderr[-2000:]}")
+    return time.perf_counter() - started, done.stdout

@@ -10,13 +10,10 @@ docs/studies.md §14).
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 import tempfile
-import time
 from pathlib import Path
 
-from common import ICT_EXPRESSIONS, ICT_MODEL, Section, markdown_table, median_ms
+from common import ICT_EXPRESSIONS, ICT_MODEL, Section, markdown_table, median_ms, timed_statfit as statfit
 
 FULL = {"size": 256, "views": 24, "iterations": None}
 QUICK = {"size": 96, "views": 6, "iterations": 20}
@@ -44,14 +41,6 @@ def renderer_ms(per_triangle: int, threads: int, size: int) -> tuple[int, int, f
         pairs.append(image.pairs)
 
     return len(splats), pairs[0] if pairs else 0, median_ms(step, 5)
-
-
-def statfit(*argv: str) -> tuple[float, str]:
-    started = time.perf_counter()
-    done = subprocess.run([sys.executable, "-m", "statfit_cli.main", *argv], capture_output=True, text=True)
-    if done.returncode != 0:
-        raise RuntimeError(f"statfit {' '.join(argv)} failed:\n{done.stderr[-2000:]}")
-    return time.perf_counter() - started, done.stdout
 
 
 def run(quick: bool, device: str, image_dir) -> Section:
