@@ -23,7 +23,7 @@ def splat_preview_png(photo: np.ndarray, splats: MeshSplats, vertices: np.ndarra
     rendered, _ = render_splats(splats, vertices, camera)
     error = np.clip(np.abs(rendered - photo).mean(axis=-1, keepdims=True) * ERROR_GAIN, 0, 1) * [1.0, 0.35, 0.1]
     mesh, _ = photograph(vertices, faces, np.full((len(vertices), 3), MESH_GREY), camera)
-    panels = [(f"photograph ({label})", photo), ("splats on the fit", rendered), ("|error| × 4", error),
+    panels = [(f"photograph ({label})", photo), ("splats on the fit", rendered), ("|error| x 4", error),
               ("fitted mesh", mesh)]
     height, width = photo.shape[:2]
     scale = max(1, 256 // max(height, width))
