@@ -15,7 +15,7 @@ from statfit.errors import StatfitError
 from statfit.importers.cache import open_model
 from statfit.io.files import existing_file
 from statfit.io.image import encoded_image, image_suffix
-from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_mesh
+from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_mesh, write_atomic
 from statfit.io.splats import read_splats, splats_bytes
 from statfit.io.views import read_views
 from statfit.objectives.images import MASK_WEIGHT
@@ -128,7 +128,6 @@ def splat_render(
     vertices, faces = read_mesh(mesh_path)
     splats = splats_from_records(read_splats(splats_path, len(faces)), torch.as_tensor(faces, dtype=torch.long))
     colour, alpha = render_splats(splats, vertices, camera)
-    from statfit.io.mesh import write_atomic
     write_atomic(out, encoded_image(np.concatenate([colour, alpha[..., None]], axis=-1), suffix))
 
 

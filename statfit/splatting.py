@@ -132,7 +132,8 @@ def fit_views(model: StatModel, views: list[View], method: str = "default", *, p
         space = FitSpace.of(model, frame, torch_device, dtype)
         faces = torch.as_tensor(model.faces, dtype=torch.long, device=torch_device)
         x0 = torch.as_tensor(frame.to_unit(model.template), dtype=dtype, device=torch_device)
-        training = [_training_view(view, frame, dtype, torch_device) for view in train]
+        converted = [_training_view(view, frame, dtype, torch_device) for view in views]
+        training = [done for done, view in zip(converted, views) if view.split == "train"]
         splats = MeshSplats.on(faces, per_triangle, dtype=dtype)
         with torch.no_grad():
             splats.colour_logit.copy_(starting_colours(splats, x0, training))
@@ -145,8 +146,7 @@ def fit_views(model: StatModel, views: list[View], method: str = "default", *, p
 
         snapshot = None if on_snapshot is None else lambda it, x: on_snapshot(it, to_world(x))
         result = run_stages(stages, space, objective, x0, on_record=on_record, on_snapshot=snapshot, timer=timer)
-        scores = score_views(splats, result.vertices, [_training_view(v, frame, dtype, torch_device) for v in views],
-                             views)
+        scores = score_views(splats, result.vertices, converted, views)
         fit = Fit(to_world(result.vertices), Similarity(), stages, result.loss, time.perf_counter() - started,
                   dict(timer.seconds), result.iterations)
         return SplatFit(fit, splats, scores)
