@@ -266,12 +266,38 @@ def estimate_pose(model: StatModel, scan: Scan, seed: int = 0) -> PoseEstimate:
         if in_place_score <= KEEP_FRAME * polished_score:
             transform, matched, coefficients = in_place, in_place_matched, in_place_coefficients
     _check_plausible(coarse_matched, coefficients, TOLERANCE * frame.scale)
-    # unit frames → the scan's: p = units·scale·q + centroid with u = (x − centre)/scale, written out so
-    # that the scale is the unit's exactly (a composition would round it)
-    model_to_scan = Similarity(units * transform.scale, transform.rotation,
-                               centroid + units * frame.scale * transform.translation
-                               - units * transform.scale * transform.rotation @ frame.center)
-    return PoseEstimate(model_to_scan, coarse_score, matched, runner_up, units)
+    return PoseEstimate(_to_scan_frame(transform, frame, centroid, units), coarse_score, matched, runner_up, units)
+
+
+def _to_scan_frame(transform: Similarity, frame: Frame, centroid: np.ndarray, units: float) -> Similarity:
+    """A pose between unit frames (model: u = (x − centre)/scale; scan: q = (p − centroid)/(units·scale))
+    as the model → scan similarity, written out so that the scale is the unit's exactly (a
+    composition would round it)."""
+    return Similarity(units * transform.scale, transform.rotation,
+                      centroid + units * frame.scale * transform.translation
+                      - units * transform.scale * transform.rotation @ frame.center)
+
+
+def refine_pose(model: StatModel, scan: Scan, start: Similarity, seed: int = 0) -> Similarity:
+    """``start`` (model → scan, e.g. placed by landmarks) polished like :func:`estimate_pose`'s
+    best pose: a rigid pose and every coefficient by Gauss–Newton on the scan, the scale snapped to
+    the power of ten nearest ``start``'s (the person's size is the modes' to explain). Landmarks on
+    part of a face tilt their similarity by degrees and scale it by ±10%, which no fit of the
+    model's modes can undo (docs/studies.md §13: half a face, 10° and 20 mm held-out error)."""
+    frame = Frame.of(model.template)
+    centroid = scan.points.mean(axis=0)
+    units = float(10.0 ** np.round(np.log10(start.scale)))
+    points = (scan.points - centroid) / (units * frame.scale)
+    in_units = Similarity(start.scale / units, start.rotation,
+                          (start.scale * start.rotation @ frame.center + start.translation - centroid)
+                          / (units * frame.scale))
+    mean = frame.to_unit(model.template)
+    rng = np.random.default_rng(seed)
+    polish = rng.choice(len(points), min(POLISH_SUBSAMPLE, len(points)), replace=False)
+    every_mode = (torch.as_tensor(np.ascontiguousarray(model.basis.T)), torch.as_tensor(model.std / frame.scale))
+    transform, _, _, _ = _polish(_Matcher(model.faces, mean), mean, *every_mode, points[polish],
+                                 scan.normals[polish], in_units)
+    return _to_scan_frame(transform, frame, centroid, units)
 
 
 def _check_plausible(matched: float, coefficients: np.ndarray, tolerance: float) -> None:

@@ -15,7 +15,7 @@ from statfit.device import resolve_device
 from statfit.errors import StatfitError, StatfitWarning
 from statfit.fit import StageTimer
 from statfit.frame import Frame
-from statfit.global_align import CLUTTER_MATCHED, DISTINCT_DEGREES, estimate_pose
+from statfit.global_align import CLUTTER_MATCHED, DISTINCT_DEGREES, estimate_pose, refine_pose
 from statfit.methods import resolve
 from statfit.settings import FitSpace, Settings
 from statfit.model import StatModel, region_triangles
@@ -107,14 +107,17 @@ def prealign(model: StatModel, scan: Scan, align: str, landmarks: np.ndarray | N
              ) -> tuple[Similarity, dict | None]:
     """The model→scan transform for ``align`` in auto|none|rigid|similarity, and for auto the
     pose search's report (:mod:`statfit.global_align`); checks units first. With ``landmarks``
-    (L, 3), the landmark similarity is the start (and, with align auto or none, the result)."""
+    (L, 3), the landmark similarity is the start: with align auto polished on the scan
+    (:func:`statfit.global_align.refine_pose`), with none the result."""
     if align not in ALIGNMENTS:
         raise StatfitError(f"unknown alignment {align!r}; choose one of {', '.join(ALIGNMENTS)}")
     points = scan.points
     if landmarks is not None:
         start = landmark_alignment(model, landmarks)
-        return (start if align in ("none", "auto") else icp(model.template, model.faces, points,
-                                                            align == "similarity", start=start)), None
+        if align == "auto":
+            return refine_pose(model, scan, start, seed), None
+        return (start if align == "none" else icp(model.template, model.faces, points,
+                                                  align == "similarity", start=start)), None
     if align == "auto":
         estimate = estimate_pose(model, scan, seed)
         return estimate.transform, estimate.summary()

@@ -48,27 +48,33 @@ METHODS = ("mean", "default", "statistical", "hybrid", "laplacian", "pca", "regu
 
 
 def candidates() -> dict:
-    """Pipelines tried beside the shipped methods: name → stages."""
+    """Pipelines tried beside the shipped methods: name → (stages, register options)."""
     from statfit.settings import Settings
 
     def gn(noise: float, levels: int = 5) -> Settings:
         return Settings("pca", 200, 0.0, optimizer="gauss-newton", noise=noise, levels=levels)
 
-    return {
-        "pca σ 0.01": (gn(0.01),),
-        "pca σ 0.03": (gn(0.03),),
-        "pca → laplacian λ 300 lr 0.03 300 it": (gn(0.003), Settings("laplacian", 300, 0.03, lam=300.0)),
-        "pca σ 0.01 → laplacian λ 300 lr 0.03 300 it": (gn(0.01), Settings("laplacian", 300, 0.03, lam=300.0)),
-        "pca σ 0.01 → hybrid β 30 lr 0.01 300 it": (gn(0.01), Settings("hybrid", 300, 0.01, beta=30.0, lam=19.0)),
-    }
+    tried = {}
+    for weight in (0.0, 1.0, 10.0):
+        for noise in (0.003, 0.01, 0.03):
+            tried[f"pca σ {noise} w {weight:g}"] = ((gn(noise),), {"landmark_weight": weight})
+        tried[f"laplacian w {weight:g}"] = (None, {"landmark_weight": weight})
+        for noise in (0.01, 0.03):
+            tried[f"pca σ {noise} → laplacian λ 300 lr 0.03 300 it w {weight:g}"] = (
+                (gn(noise), Settings("laplacian", 300, 0.03, lam=300.0)), {"landmark_weight": weight})
+            tried[f"pca σ {noise} → statistical β 100 lr 0.01 300 it w {weight:g}"] = (
+                (gn(noise), Settings("statistical", 300, 0.01, beta=100.0)), {"landmark_weight": weight})
+    return tried
 
 
 def register_with(method: str, model, points: np.ndarray, **options):
     """``register`` with a shipped method or a candidate pipeline of :func:`candidates`."""
     from statfit.register import register
 
-    stages = candidates().get(method)
-    return register(model, points, method if stages is None else "default", stages=stages, threads=1, **options)
+    stages, extra = candidates().get(method, (None, {}))
+    shipped = method.split(" w ")[0] if stages is None and extra else method
+    return register(model, points, shipped if stages is None else "default", stages=stages, threads=1,
+                    **options, **extra)
 
 
 def smooth_deformation(vertices: np.ndarray, rng: np.random.Generator) -> np.ndarray:
