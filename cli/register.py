@@ -40,7 +40,8 @@ def register(
     landmarks: Path = typer.Option(None, "--landmarks", help="The scan's landmarks, one per model landmark in the "
                                    "model's order (missing: nan/null): text rows 'x y z', an iBUG .pts file (3D), or a "
                                    "JSON list of [x, y, z]. They place the start (a robust similarity: any pose, scale "
-                                   "or units; refined by --align rigid/similarity if given) and stay a fit term.",
+                                   "or units), which --align auto then polishes on the scan (rigid pose and every mode; "
+                                   "none keeps it, rigid/similarity refine it by ICP), and stay a fit term.",
                                    show_default=False),
     landmark_weight: float = typer.Option(LANDMARK_WEIGHT, help="Weight of the landmark term against the scan's mean "
                                           "squared distance (robust: beyond ~5% of the model's radius off its place, a "

@@ -278,12 +278,13 @@ def _to_scan_frame(transform: Similarity, frame: Frame, centroid: np.ndarray, un
                       - units * transform.scale * transform.rotation @ frame.center)
 
 
-def refine_pose(model: StatModel, scan: Scan, start: Similarity, seed: int = 0) -> Similarity:
+def refine_pose(model: StatModel, scan: Scan, start: Similarity, seed: int = 0) -> PoseEstimate:
     """``start`` (model → scan, e.g. placed by landmarks) polished like :func:`estimate_pose`'s
     best pose: a rigid pose and every coefficient by Gauss–Newton on the scan, the scale snapped to
     the power of ten nearest ``start``'s (the person's size is the modes' to explain). Landmarks on
     part of a face tilt their similarity by degrees and scale it by ±10%, which no fit of the
-    model's modes can undo (docs/studies.md §13: half a face, 10° and 20 mm held-out error)."""
+    model's modes can undo (docs/studies.md §15: half a face, 10° and 20 mm held-out error). The
+    estimate's ``score`` is the polished pose's and ``runner_up`` 1 (no other pose is searched)."""
     frame = Frame.of(model.template)
     centroid = scan.points.mean(axis=0)
     units = float(10.0 ** np.round(np.log10(start.scale)))
@@ -295,9 +296,9 @@ def refine_pose(model: StatModel, scan: Scan, start: Similarity, seed: int = 0) 
     rng = np.random.default_rng(seed)
     polish = rng.choice(len(points), min(POLISH_SUBSAMPLE, len(points)), replace=False)
     every_mode = (torch.as_tensor(np.ascontiguousarray(model.basis.T)), torch.as_tensor(model.std / frame.scale))
-    transform, _, _, _ = _polish(_Matcher(model.faces, mean), mean, *every_mode, points[polish],
-                                 scan.normals[polish], in_units)
-    return _to_scan_frame(transform, frame, centroid, units)
+    transform, score, matched, _ = _polish(_Matcher(model.faces, mean), mean, *every_mode, points[polish],
+                                           scan.normals[polish], in_units)
+    return PoseEstimate(_to_scan_frame(transform, frame, centroid, units), score, matched, 1.0, units)
 
 
 def _check_plausible(matched: float, coefficients: np.ndarray, tolerance: float) -> None:

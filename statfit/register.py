@@ -108,14 +108,15 @@ def prealign(model: StatModel, scan: Scan, align: str, landmarks: np.ndarray | N
     """The model→scan transform for ``align`` in auto|none|rigid|similarity, and for auto the
     pose search's report (:mod:`statfit.global_align`); checks units first. With ``landmarks``
     (L, 3), the landmark similarity is the start: with align auto polished on the scan
-    (:func:`statfit.global_align.refine_pose`), with none the result."""
+    (:func:`statfit.global_align.refine_pose`, whose report is returned), with none the result."""
     if align not in ALIGNMENTS:
         raise StatfitError(f"unknown alignment {align!r}; choose one of {', '.join(ALIGNMENTS)}")
     points = scan.points
     if landmarks is not None:
         start = landmark_alignment(model, landmarks)
         if align == "auto":
-            return refine_pose(model, scan, start, seed), None
+            estimate = refine_pose(model, scan, start, seed)
+            return estimate.transform, {**estimate.summary(), "from_landmarks": True}
         return (start if align == "none" else icp(model.template, model.faces, points,
                                                   align == "similarity", start=start)), None
     if align == "auto":

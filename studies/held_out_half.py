@@ -1,5 +1,5 @@
 """What a fit guesses where it saw nothing, for a person outside the model (issue 11, part 5;
-docs/studies.md §13).
+docs/studies.md §15).
 
 Protocol ("a real person is never in the model's span"): the fits use the ICT model truncated to
 its first ``--k`` modes (default 50); each target is drawn from all 100 identity modes, plus an
@@ -18,7 +18,7 @@ other half is the test:
 The in-span check runs the registration study's nine cases (docs/studies.md §1: the full model,
 identity in span, expression outside) for every pipeline that is not a plain method.
 
-    python studies/held_out_half.py                 # ~25 min on 2 cores; results cached
+    python studies/held_out_half.py                 # ~50 min on 2 cores; results cached
     python studies/held_out_half.py --report        # tables from studies/results/held_out_half.json
 """
 from __future__ import annotations

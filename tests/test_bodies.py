@@ -143,7 +143,8 @@ def _fit_unseen_normals(method: str, size: int) -> float:
 def test_the_statistical_filter_keeps_the_unseen_side_plausible(tmp_path, monkeypatch):
     """The paper's body claim, on a body the model never saw: the Laplacian filter fits the visible
     side and bends the unseen one; the statistical filter keeps it close to a body's shape (mean
-    normal angle on the unseen side; study: 8.8° vs 19.9° over 12 fits at 384²)."""
+    normal angle on the unseen side; study: 8.8° vs 19.9° over 12 fits at 384²; at the 160² used here
+    to keep the suite short, 10.5° vs 21.0°)."""
     from conftest import run_two_at_a_time
 
     monkeypatch.setenv("STATFIT_BODY_MODEL", str(tmp_path / "body.npz"))
@@ -151,5 +152,5 @@ def test_the_statistical_filter_keeps_the_unseen_side_plausible(tmp_path, monkey
     import sys
     subprocess.run([sys.executable, "-m", "statfit_cli.main", "model", "build-makehuman", str(MAKEHUMAN), "-o",
                     str(tmp_path / "body.npz")], check=True, capture_output=True)
-    angles = run_two_at_a_time(_fit_unseen_normals, {m: (m, 256) for m in ("statistical", "laplacian")})
+    angles = run_two_at_a_time(_fit_unseen_normals, {m: (m, 160) for m in ("statistical", "laplacian")})
     assert angles["statistical"] < 0.75 * angles["laplacian"], angles

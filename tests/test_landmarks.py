@@ -132,7 +132,7 @@ def test_landmarks_on_half_a_face_place_a_start_the_scan_then_corrects(embedded_
     landmarks[landmarks[:, 0] < middle] = np.nan
     scan = Scan.from_points(truth.apply(points[points[:, 0] > middle]))
     start = landmark_alignment(model, truth.apply(landmarks))
-    refined = refine_pose(model, scan, start)
+    refined = refine_pose(model, scan, start).transform
 
     def degrees(rotation: np.ndarray) -> float:
         return float(np.degrees(Rotation.from_matrix(rotation.T @ truth.rotation).magnitude()))
@@ -140,3 +140,4 @@ def test_landmarks_on_half_a_face_place_a_start_the_scan_then_corrects(embedded_
     assert degrees(start.rotation) > 2.0 and abs(start.scale - 10.0) > 0.2     # the case is a hard one
     assert degrees(refined.rotation) < 0.6
     assert refined.scale == 10.0
+
