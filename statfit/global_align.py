@@ -278,6 +278,13 @@ def _to_scan_frame(transform: Similarity, frame: Frame, centroid: np.ndarray, un
                       - units * transform.scale * transform.rotation @ frame.center)
 
 
+def _to_unit_frames(transform: Similarity, frame: Frame, centroid: np.ndarray, units: float) -> Similarity:
+    """The inverse of :func:`_to_scan_frame`: a model → scan similarity as a pose between the unit frames."""
+    return Similarity(transform.scale / units, transform.rotation,
+                      (transform.scale * transform.rotation @ frame.center + transform.translation - centroid)
+                      / (units * frame.scale))
+
+
 def refine_pose(model: StatModel, scan: Scan, start: Similarity, seed: int = 0) -> PoseEstimate:
     """``start`` (model → scan, e.g. placed by landmarks) polished like :func:`estimate_pose`'s
     best pose: a rigid pose and every coefficient by Gauss–Newton on the scan, the scale snapped to
@@ -289,9 +296,7 @@ def refine_pose(model: StatModel, scan: Scan, start: Similarity, seed: int = 0) 
     centroid = scan.points.mean(axis=0)
     units = float(10.0 ** np.round(np.log10(start.scale)))
     points = (scan.points - centroid) / (units * frame.scale)
-    in_units = Similarity(start.scale / units, start.rotation,
-                          (start.scale * start.rotation @ frame.center + start.translation - centroid)
-                          / (units * frame.scale))
+    in_units = _to_unit_frames(start, frame, centroid, units)
     mean = frame.to_unit(model.template)
     rng = np.random.default_rng(seed)
     polish = rng.choice(len(points), min(POLISH_SUBSAMPLE, len(points)), replace=False)
