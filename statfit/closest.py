@@ -82,7 +82,8 @@ def open_edges(faces: torch.Tensor) -> torch.Tensor:
     """(F, 3) bool: whether the edge opposite each triangle corner is on the mesh's open boundary
     (used by one triangle only)."""
     edges = torch.stack([faces[:, [1, 2]], faces[:, [2, 0]], faces[:, [0, 1]]], dim=1).sort(dim=-1).values
-    _, inverse, counts = torch.unique(edges.reshape(-1, 2), dim=0, return_inverse=True, return_counts=True)
+    keys = edges[..., 0] * (int(faces.max()) + 1) + edges[..., 1]   # one integer per undirected edge
+    _, inverse, counts = torch.unique(keys.reshape(-1), return_inverse=True, return_counts=True)
     return (counts[inverse] == 1).view(-1, 3)
 
 

@@ -68,6 +68,8 @@ DISTINCT_DEGREES = 30.0
 # of the face's points ≤ 0.82 (docs/method.md, "The registration objective").
 CLUTTER_MATCHED = 0.87
 KEEP_FRAME = 1.05          # the scan as it lies scores within this factor of the best pose: keep it
+NEAR_OFFSET = 0.5          # ... and is polished to see whether it does only when the best pose lies this near
+                           # (model RMS radii; and within DISTINCT_DEGREES): a second polish costs ~0.4 s
 AMBIGUITY = 1.15           # runner-up score within this factor of the best: ambiguous
 FACING_MIN = -0.25         # cos between the model's face direction (+z) and the scan's mean normal
 IMPLAUSIBLE_RMS = 2.0       # coefficients (std-devs) no scan of a face needs, on average ...
@@ -251,22 +253,28 @@ def estimate_pose(model: StatModel, scan: Scan, seed: int = 0) -> PoseEstimate:
     refined = [_refine(matcher, mean, basis_t, std, points[many], scan.normals[many], poses.pick(i), bounds)
                for i in candidates]
     best = int(np.argmin([score for _, score, _ in refined]))
-    transform, coarse_score, coarse_matched = refined[best]
+    coarse_pose, coarse_score, coarse_matched = refined[best]
     others = [score for index, (pose, score, _) in enumerate(refined)
-              if index != best and _angle(pose.rotation, transform.rotation) >= DISTINCT_DEGREES]
+              if index != best and _angle(pose.rotation, coarse_pose.rotation) >= DISTINCT_DEGREES]
     runner_up = min(others, default=1.0)
     every_mode = (torch.as_tensor(np.ascontiguousarray(model.basis.T)), torch.as_tensor(model.std / frame.scale))
     polish = rng.choice(len(points), min(POLISH_SUBSAMPLE, len(points)), replace=False)
     transform, polished_score, matched, coefficients = _polish(matcher, mean, *every_mode, points[polish],
-                                                               scan.normals[polish], transform)
-    if units == 1.0:   # the scan may already lie on the model: then leave it there
-        in_place = Similarity(1.0, np.eye(3), (frame.center - centroid) / frame.scale)
+                                                               scan.normals[polish], coarse_pose)
+    in_place = Similarity(1.0, np.eye(3), (frame.center - centroid) / frame.scale)
+    if units == 1.0 and _near(in_place, coarse_pose):   # only then can the scan as it lies compete
         _, in_place_score, in_place_matched, in_place_coefficients = _polish(
             matcher, mean, *every_mode, points[polish], scan.normals[polish], in_place, move=False)
         if in_place_score <= KEEP_FRAME * polished_score:
             transform, matched, coefficients = in_place, in_place_matched, in_place_coefficients
     _check_plausible(coarse_matched, coefficients, TOLERANCE * frame.scale)
     return PoseEstimate(_to_scan_frame(transform, frame, centroid, units), coarse_score, matched, runner_up, units)
+
+
+def _near(pose: Similarity, other: Similarity) -> bool:
+    """Whether two poses (unit frames) are within DISTINCT_DEGREES and NEAR_OFFSET of each other."""
+    return (_angle(pose.rotation, other.rotation) < DISTINCT_DEGREES
+            and float(np.linalg.norm(pose.translation - other.translation)) < NEAR_OFFSET)
 
 
 def _to_scan_frame(transform: Similarity, frame: Frame, centroid: np.ndarray, units: float) -> Similarity:
