@@ -42,9 +42,10 @@ def _model():
     return with_landmarks(ict_model(), np.load(ICT_MODEL)["landmarks68"][INNER].astype(np.int64))
 
 
-def _person(seed: int, clutter: float):
-    """A realistic scan of seed's person: (RealisticScan, units)."""
-    from statfit.scanner import realistic_scan
+def _person(seed: int, clutter: float, clutter_parts: tuple[str, ...] | None = None):
+    """A realistic scan of seed's person: (RealisticScan, units); ``clutter_parts`` as
+    :func:`statfit.scanner.realistic_scan`'s (default: all)."""
+    from statfit.scanner import CLUTTER_PARTS, realistic_scan
     from statfit.synth import load_delta
 
     model = _model()
@@ -56,7 +57,8 @@ def _person(seed: int, clutter: float):
     units = UNITS[rng.integers(len(UNITS))]
     yaw = rng.uniform(-45, 45)
     scan_rng = np.random.default_rng(seed)   # the same scanner draws with and without clutter
-    return realistic_scan(shape, model.faces, scan_rng, yaw_deg=yaw, clutter=clutter, units=units), units
+    return realistic_scan(shape, model.faces, scan_rng, yaw_deg=yaw, clutter=clutter, units=units,
+                          clutter_parts=CLUTTER_PARTS if clutter_parts is None else clutter_parts), units
 
 
 def pose_case(seed: int) -> dict:

@@ -14,7 +14,7 @@ from statfit.io.normalmap import write_camera, write_normal_map
 from statfit.io.image import write_image
 from statfit.io.landmarks import landmarks_text
 from statfit.io.views import CAMERAS_FILE, views_json
-from statfit.scanner import UNITS_PER_METRE, realistic_scan
+from statfit.scanner import CLUTTER_PARTS, UNITS_PER_METRE, realistic_scan
 from statfit.synth import camera_for_view, load_delta, render_target, sample_target, scan_from_view
 from statfit.synth_views import generated_albedo, held_out_split, hemisphere_cameras, photograph
 from statfit.importers.cache import open_model
@@ -67,6 +67,8 @@ def scan(
                                    "then about the points on the shape."),
     clutter: float = typer.Option(0.5, help="--realistic: clutter points per shape point (0: none).",
                                   callback=within(0, 2)),
+    clutter_parts: str = typer.Option(",".join(CLUTTER_PARTS), help="--realistic: which clutter, comma-separated: "
+                                      "hair (over the scalp, hiding it), neck (neck and shoulders below)."),
     holes: int = typer.Option(3, help="--realistic: disks of lost data.", callback=within(0, 100)),
     units: str = typer.Option("mm", help="--realistic: the scan's length unit (mm, cm or m)."),
     pose: bool = typer.Option(True, "--pose/--no-pose", help="--realistic: turn the scan by a random rotation and "
@@ -91,6 +93,9 @@ def scan(
         raise StatfitError(f"unknown --units {units!r}; choose one of {', '.join(UNITS_PER_METRE)}")
     if landmarks_out is not None and not realistic:
         raise StatfitError("--landmarks-out goes with --realistic")
+    parts = tuple(part.strip() for part in clutter_parts.split(",") if part.strip())
+    if unknown := sorted(set(parts) - set(CLUTTER_PARTS)):
+        raise StatfitError(f"unknown --clutter-parts {', '.join(unknown)}; choose from {', '.join(CLUTTER_PARTS)}")
     for target in (out, gt, landmarks_out):
         if target is not None:
             check_writable(target)
@@ -103,7 +108,8 @@ def scan(
     if not realistic:
         scan_bytes = points_bytes(scan_from_view(shape, model.faces, rng, points, yaw, pitch, noise, outliers))
     else:
-        made = realistic_scan(shape, model.faces, rng, points, yaw, pitch, clutter, holes, noise, units, pose)
+        made = realistic_scan(shape, model.faces, rng, points, yaw, pitch, clutter, holes, noise, units, pose,
+                              parts)
         scan_bytes, shape = mesh_bytes(made.vertices, made.faces, "ply"), made.truth
     write_atomic(out, scan_bytes)
     if gt is not None:

@@ -26,6 +26,8 @@ UNITS_PER_METRE = {"m": 1.0, "cm": 100.0, "mm": 1000.0}
 GRAZING_COSINE = 0.2
 # Two neighbouring grid hits are joined only if their depths differ by less than this many grid steps.
 DEPTH_JUMP_STEPS = 4.0
+# What clutter a realistic scan can hold: hair over the scalp, a neck and shoulders tube below.
+CLUTTER_PARTS = ("hair", "neck")
 # The hair layer's thickness and the tube's length, in the shape's RMS radii.
 HAIR_THICKNESS = 0.08
 TUBE_LENGTH = 1.2
@@ -112,23 +114,29 @@ def _grid_mesh(cells: np.ndarray, depth: np.ndarray, shape: tuple[int, int], ste
 
 def realistic_scan(vertices: np.ndarray, faces: np.ndarray, rng: np.random.Generator, points: int = 4300,
                    yaw_deg: float = 30.0, pitch_deg: float = 0.0, clutter: float = 0.5, holes: int = 3,
-                   noise: float = 0.002, units: str = "mm", posed: bool = True) -> RealisticScan:
+                   noise: float = 0.002, units: str = "mm", posed: bool = True,
+                   clutter_parts: tuple[str, ...] = CLUTTER_PARTS) -> RealisticScan:
     """A range scan of the shape (``vertices`` (N, 3), ``faces`` (F, 3), +y up) seen from
     ``view_direction(yaw, pitch)``, with about ``points`` points on the shape; ``clutter`` the
     clutter points per shape point wanted (hair, then as much neck and shoulders as it takes; 0:
     none), ``holes`` disks of lost data, ``noise`` the depth noise in RMS radii, ``units`` the
-    scan's length unit (mm, cm, m; the model's is guessed from its size) and ``posed`` a rotation
-    uniform over all rotations plus an offset."""
+    scan's length unit (mm, cm, m; the model's is guessed from its size), ``posed`` a rotation
+    uniform over all rotations plus an offset, and ``clutter_parts`` which clutter there is (of
+    CLUTTER_PARTS; without ``neck``, the hair is all the clutter)."""
     if units not in UNITS_PER_METRE:
         raise StatfitError(f"unknown units {units!r}; choose one of {', '.join(UNITS_PER_METRE)}")
     if not 0 <= clutter <= 2:
         raise StatfitError(f"clutter must lie in [0, 2] (clutter points per shape point), got {clutter}")
+    if unknown := set(clutter_parts) - set(CLUTTER_PARTS):
+        raise StatfitError(f"unknown clutter part(s) {', '.join(sorted(unknown))}; choose from {', '.join(CLUTTER_PARTS)}")
     frame = Frame.of(vertices)
-    parts = [trimesh.Trimesh(vertices, faces, process=False)]
-    if clutter > 0:
-        parts += [hair_layer(vertices, faces, rng), neck_tube(vertices)]
+    parts, ids = [trimesh.Trimesh(vertices, faces, process=False)], [0]    # 0 shape, 1 hair, 2 tube
+    if clutter > 0 and "hair" in clutter_parts:
+        parts, ids = parts + [hair_layer(vertices, faces, rng)], ids + [1]
+    if clutter > 0 and "neck" in clutter_parts:
+        parts, ids = parts + [neck_tube(vertices)], ids + [2]
     scene = trimesh.util.concatenate(parts)
-    owner = np.repeat(np.arange(len(parts)), [len(p.faces) for p in parts])   # 0 shape, 1 hair, 2 tube
+    owner = np.repeat(ids, [len(p.faces) for p in parts])
 
     toward = view_direction(yaw_deg, pitch_deg)
     right = np.cross([0.0, 1.0, 0.0], toward)

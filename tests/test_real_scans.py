@@ -46,6 +46,30 @@ def test_realistic_scan_holds_the_shape_clutter_as_asked_and_its_pose(embedded_m
     assert clean.on_shape.all() and np.allclose(clean.truth, shape)
 
 
+def test_realistic_scan_holds_only_the_clutter_parts_asked_for(embedded_model):
+    model = embedded_model
+    shape = model.sample(np.random.default_rng(0))
+    up = lambda made: made.transform.inverse_apply(made.vertices)[:, 1]  # noqa: E731  (model frame, +y up)
+    top, bottom = shape[:, 1].max(), shape[:, 1].min()
+    hair = realistic_scan(shape, model.faces, np.random.default_rng(1), clutter=0.5, clutter_parts=("hair",))
+    neck = realistic_scan(shape, model.faces, np.random.default_rng(1), clutter=0.5, clutter_parts=("neck",))
+    # hair lies over the scalp: above the lowest point of the head; the neck tube below the head
+    assert (~hair.on_shape).sum() > 50 and up(hair)[~hair.on_shape].min() > bottom
+    assert neck.clutter_ratio > 0.3 and up(neck)[~neck.on_shape].max() < top
+    assert up(hair)[~hair.on_shape].max() > top                   # the hair rises over the crown
+    with pytest.raises(StatfitError, match="unknown clutter part"):
+        realistic_scan(shape, model.faces, np.random.default_rng(1), clutter_parts=("hat",))
+
+
+def test_synth_scan_clutter_parts_on_the_command_line(tmp_path):
+    out = tmp_path / "scan.ply"
+    assert run_cli(["synth", "scan", "--realistic", "--clutter-parts", "hair", "--out", str(out)])[0] == 0
+    assert read_mesh(out)[0].shape[0] > 100
+    code, err = run_cli(["synth", "scan", "--realistic", "--clutter-parts", "hair,hat", "--out", str(tmp_path / "x.ply")])
+    assert code == 2 and err.count("\n") == 1 and "unknown --clutter-parts hat" in err
+    assert not (tmp_path / "x.ply").exists()
+
+
 def test_synth_scan_realistic_writes_a_mesh_its_truth_and_landmarks(tmp_path):
     scan, gt, marks = tmp_path / "scan.ply", tmp_path / "gt.ply", tmp_path / "marks.txt"
     code, err = run_cli(["synth", "scan", "--realistic", "--seed", "4", "--units", "cm", "--out", str(scan), "--gt",
