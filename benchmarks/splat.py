@@ -40,7 +40,8 @@ def renderer_ms(per_triangle: int, threads: int, size: int) -> tuple[int, int, f
         (image.colour.sum() + image.alpha.sum()).backward()
         pairs.append(image.pairs)
 
-    return len(splats), pairs[0] if pairs else 0, median_ms(step, 5)
+    ms = median_ms(step, 5)   # before reading ``pairs``, which the steps fill
+    return len(splats), pairs[0], ms
 
 
 def run(quick: bool, device: str, image_dir) -> Section:
