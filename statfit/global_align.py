@@ -17,7 +17,10 @@ back to front, turned by 90°). So:
    wider or longer than the mean does not pull the pose.
 5. **Polish.** The best pose is refined once more against every mode, trimming as the fit does
    (OUTLIER_SIGMAS), on more points: a pose the first modes could not explain is what the fit,
-   which cannot turn the model, would keep.
+   which cannot turn the model, would keep. Hair would tilt it: the modes bulge the head towards a
+   surface 5–9 mm over the scalp. So, for a model with a face (a ``face`` region or landmarks),
+   the polish runs three times: on the whole head, then on the face alone (which hair cannot
+   reach), and last on every point except those lying HAIR_OFFSET beyond the face fit's scalp.
 6. **Score**: a truncated residual — each point's squared distance capped at TOLERANCE², a point
    whose normal disagrees counting as the cap — over the cap: 0 is a perfect fit, 1 nothing
    matched. The runner-up (another pose ≥ DISTINCT_DEGREES away) within AMBIGUITY of the best
@@ -42,7 +45,7 @@ from statfit.closest import ClosestPointQuery
 from statfit.errors import StatfitError
 from statfit.frame import Frame
 from statfit.gauss_newton import fit_coefficients
-from statfit.model import StatModel
+from statfit.model import StatModel, face_triangles
 from statfit.objectives.scan import ScanObjective
 from statfit.scan import Scan
 
@@ -68,6 +71,12 @@ DISTINCT_DEGREES = 30.0
 # of the face's points ≤ 0.82 (docs/method.md, "The registration objective").
 CLUTTER_MATCHED = 0.87
 KEEP_FRAME = 1.05          # the scan as it lies scores within this factor of the best pose: keep it
+# Scan points this far outside a fit of the face alone (model RMS radii, ~4.5 mm on a head), off the
+# face, are not fitted by the polish: hair over the scalp, which the modes would bulge the head to
+# reach, tilting the pose 1-5° (docs/studies.md §16).
+HAIR_OFFSET = 0.05
+LEAD_SUBSAMPLE = 1500      # points of the two polishes that find the face (as good as 3,000 on §16's scans)
+MAX_HAIR_SHARE = 0.6       # ... unless more of the scan than this lies there: that is no head under hair
 NEAR_OFFSET = 0.5          # ... and is polished to see whether it does only when the best pose lies this near
                            # (model RMS radii; and within DISTINCT_DEGREES): a second polish costs ~0.4 s
 AMBIGUITY = 1.15           # runner-up score within this factor of the best: ambiguous
@@ -139,8 +148,9 @@ class _Matcher:
         self.vertices = vertices
         self.tree = cKDTree(vertices)
         a, b, c = (vertices[self.faces[:, i]] for i in range(3))
-        normals = np.zeros_like(vertices)
-        np.add.at(normals, self.faces.reshape(-1), np.repeat(np.cross(b - a, c - a), 3, axis=0))
+        corner_normals = np.repeat(np.cross(b - a, c - a), 3, axis=0)
+        normals = np.stack([np.bincount(self.faces.reshape(-1), corner_normals[:, i], len(vertices))
+                            for i in range(3)], axis=1)
         self.normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
         self.spacing = float(np.linalg.norm(b - a, axis=1).mean())
 
@@ -166,7 +176,7 @@ def _icp(matcher: _Matcher, points: np.ndarray, normals: np.ndarray, poses: _Pos
     for _ in range(rounds):
         local = poses.to_model(points)
         surface, surface_normals, distance, agree = matcher(local, np.einsum("mi,hij->hmj", normals, poses.rotation))
-        cut = np.array([np.quantile(d[a], KEEP) if a.sum() > 10 else np.inf for d, a in zip(distance, agree)])
+        cut = _row_quantile(distance, agree, KEEP)
         weight = (agree & (distance <= cut[:, None])).astype(np.float64)
         centre = (weight[..., None] * surface).sum(axis=1) / np.maximum(weight.sum(axis=1), 1)[:, None]
         q, p = surface - centre[:, None], local - centre[:, None]
@@ -186,6 +196,23 @@ def _icp(matcher: _Matcher, points: np.ndarray, normals: np.ndarray, poses: _Pos
                        poses.scale[:, None] * np.einsum("hij,hj->hi", poses.rotation, step_translation)
                        + poses.translation)
     return poses
+
+
+def _row_quantile(values: np.ndarray, mask: np.ndarray, q: float) -> np.ndarray:
+    """Per row of ``values`` (H, M), the ``q`` quantile of the entries ``mask`` (H, M) keeps, as
+    ``np.quantile`` (linear) computes it, or inf for a row keeping 10 or fewer: all rows at once."""
+    count = mask.sum(axis=1)
+    last = np.maximum(count, 1) - 1
+    ordered = np.sort(np.where(mask, values, np.inf), axis=1)
+    position = q * last
+    low = np.floor(position).astype(np.int64)
+    t = position - low
+    a = np.take_along_axis(ordered, low[:, None], 1)[:, 0]
+    b = np.take_along_axis(ordered, np.minimum(low + 1, last)[:, None], 1)[:, 0]
+    with np.errstate(invalid="ignore"):      # inf − inf on rows that keep nothing, masked below
+        diff = b - a
+        value = np.where(t >= 0.5, b - diff * (1 - t), a + diff * t)   # numpy's own interpolation
+    return np.where(count > 10, value, np.inf)
 
 
 def _score(matcher: _Matcher, points: np.ndarray, normals: np.ndarray, poses: _Poses, tolerance: float = TOLERANCE
@@ -259,8 +286,19 @@ def estimate_pose(model: StatModel, scan: Scan, seed: int = 0) -> PoseEstimate:
     runner_up = min(others, default=1.0)
     every_mode = (torch.as_tensor(np.ascontiguousarray(model.basis.T)), torch.as_tensor(model.std / frame.scale))
     polish = rng.choice(len(points), min(POLISH_SUBSAMPLE, len(points)), replace=False)
+    start, hair = coarse_pose, None
+    if (face := face_triangles(model)) is not None:   # step 5: whole head, face alone, all but the hair
+        lead = polish[:LEAD_SUBSAMPLE]
+        start = _polish(matcher, mean, *every_mode, points[lead], scan.normals[lead], start)[0]
+        start, _, _, face_fit = _polish(matcher, mean, *every_mode, points[lead], scan.normals[lead], start,
+                                        region=face)
+        face_shape = mean + (_directions(*every_mode, mean.shape) @ torch.as_tensor(face_fit)).numpy()
+        hair = _outside_off_the_face(matcher, mean, face_shape, start, points[polish], face)
+        if hair.mean() > MAX_HAIR_SHARE:   # not a head under hair: fit every point
+            hair = None
     transform, polished_score, matched, coefficients = _polish(matcher, mean, *every_mode, points[polish],
-                                                               scan.normals[polish], coarse_pose)
+                                                               scan.normals[polish], start,
+                                                               used=None if hair is None else ~hair)
     in_place = Similarity(1.0, np.eye(3), (frame.center - centroid) / frame.scale)
     if units == 1.0 and _near(in_place, coarse_pose):   # only then can the scan as it lies compete
         _, in_place_score, in_place_matched, in_place_coefficients = _polish(
@@ -353,26 +391,31 @@ def _refine(matcher: _Matcher, mean: np.ndarray, basis_t: torch.Tensor, std: tor
 
 
 def _polish(matcher: _Matcher, mean: np.ndarray, basis_t: torch.Tensor, std: torch.Tensor, points: np.ndarray,
-            normals: np.ndarray, start: Similarity, move: bool = True
-            ) -> tuple[Similarity, float, float, np.ndarray]:
+            normals: np.ndarray, start: Similarity, move: bool = True, region: np.ndarray | None = None,
+            used: np.ndarray | None = None) -> tuple[Similarity, float, float, np.ndarray]:
     """Gauss–Newton on a rigid pose and every coefficient at once (``basis_t`` (K, 3N), ``std``
     (K,)): the fit's own robust point-to-plane residuals, a Gaussian prior on the coefficients only,
     the pose updated by a small rigid motion of the scan points each step. The scale is the units'
     (``start``'s scale is dropped, keeping the scan's centroid in place): a person's size is the
     model's to explain, by its modes and under its prior; a free scale would trade against them at
-    no cost. ``move`` False holds the pose. Returns the pose (model unit frame → scan unit frame),
+    no cost. ``move`` False holds the pose; ``region`` (F,) bool: only points attached to these
+    triangles are fitted; ``used`` (M,) bool: only these points are fitted (every point is scored). Returns the pose (model unit frame → scan unit frame),
     its score (POLISH_TOLERANCE), matched share and the coefficients (K,) in standard deviations."""
     middle = start.inverse_apply(points).mean(axis=0)
     start = Similarity(1.0, start.rotation, start.apply(middle) - start.rotation @ middle)
-    directions = (basis_t * std[:, None]).T.reshape(*mean.shape, len(std))          # (N, 3, K)
+    directions = _directions(basis_t, std, mean.shape)
     coefficients = torch.zeros(len(std), dtype=torch.float64)
     pose, mean_t = start, torch.as_tensor(mean)
+    fitted, fitted_normals = (points, normals) if used is None else (points[used], normals[used])
+    region_faces = None if region is None else torch.as_tensor(region)
     for _ in range(POLISH_ITERATIONS):
-        local = torch.as_tensor(pose.inverse_apply(points))
-        objective = ScanObjective(local, matcher.query, trim=0.05, normals=torch.as_tensor(normals @ pose.rotation),
-                                  clutter=True)
+        local = torch.as_tensor(pose.inverse_apply(fitted))
+        objective = ScanObjective(local, matcher.query, trim=0.05, normals=torch.as_tensor(fitted_normals @ pose.rotation),
+                                  clutter=True, region_faces=region_faces)
         x = mean_t + directions @ coefficients
         objective.refresh(x)
+        if objective.kept < 10:     # nothing left to say where to go (e.g. no point on the region): stay
+            break
         residuals = objective.residuals(x)
         count = max(residuals.numel(), 1)
         jacobian = objective.jacobian(directions)
@@ -398,3 +441,24 @@ def _polish(matcher: _Matcher, mean: np.ndarray, basis_t: torch.Tensor, std: tor
     score, matched = _score(matcher, points, normals, poses, POLISH_TOLERANCE)
     matcher.set_shape(mean)
     return pose, float(score[0]), float(matched[0]), coefficients.numpy()
+
+
+def _directions(basis_t: torch.Tensor, std: torch.Tensor, shape: tuple[int, ...]) -> torch.Tensor:
+    """The modes scaled by their standard deviations, vertex-major: (N, 3, K)."""
+    return (basis_t * std[:, None]).T.reshape(*shape, len(std))
+
+
+def _outside_off_the_face(matcher: _Matcher, mean: np.ndarray, shape: np.ndarray, pose: Similarity,
+                          points: np.ndarray, face: np.ndarray) -> np.ndarray:
+    """(M,) bool: the points (scan unit frame) lying more than HAIR_OFFSET outside ``shape`` (N, 3,
+    model unit frame) in ``pose``, nearest to a vertex off the ``face`` (F,) bool triangles: hair,
+    or whatever else covers the head where a fit of the face alone expects the scalp. The matcher is
+    left on ``mean``."""
+    matcher.set_shape(shape)
+    local = pose.inverse_apply(points)
+    _, nearest = matcher.tree.query(local)
+    outside = ((local - shape[nearest]) * matcher.normals[nearest]).sum(axis=1)
+    matcher.set_shape(mean)
+    on_face = np.zeros(len(shape), dtype=bool)
+    on_face[matcher.faces[face].reshape(-1)] = True
+    return (outside > HAIR_OFFSET) & ~on_face[nearest]

@@ -7,7 +7,6 @@ from typing import Any, Callable
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
 from statfit.align import Similarity, icp, initial_guess, umeyama
 from statfit.closest import ClosestPointQuery
@@ -18,7 +17,7 @@ from statfit.frame import Frame
 from statfit.global_align import CLUTTER_MATCHED, DISTINCT_DEGREES, estimate_pose, refine_pose
 from statfit.methods import resolve
 from statfit.settings import FitSpace, Settings
-from statfit.model import StatModel, region_triangles
+from statfit.model import StatModel, face_triangles, region_triangles
 from statfit.objectives.landmarks import LandmarkObjective, WithLandmarks
 from statfit.objectives.scan import ScanObjective
 from statfit.scan import Scan
@@ -33,10 +32,6 @@ IMPLAUSIBLE_COORDINATE = 1e9
 # Median scan-to-template distance (in model RMS radii) above which the scan is "far" from the model.
 FAR_DISTANCE = 0.25
 ROBUST_ALIGNMENT_ROUNDS = 10
-# With clutter, the data term keeps to the face: its region, or this many RMS radii around the
-# landmarks (ICT: 5.7 cm; 0.7 let the hair in: face error 1.48 mm against 0.70 at 0.5 and 1.73 for
-# the whole head; docs/method.md, "The registration objective").
-FACE_RADIUS = 0.5
 # Weight of the landmark term against the scan's mean squared distance (docs/studies.md §12).
 LANDMARK_WEIGHT = 10.0
 
@@ -57,18 +52,6 @@ def check_scan(points: np.ndarray, source: str = "scan") -> np.ndarray:
         raise StatfitError(f"{source} has coordinates as large as {largest:.3g}: not a scan in any length unit "
                            "(a damaged file?)")
     return points
-
-
-def face_triangles(model: StatModel) -> np.ndarray | None:
-    """(F,) bool: the model's face — its ``face`` region, else the vertices within FACE_RADIUS RMS
-    radii of a landmark — or None for a model with neither."""
-    if model.regions and "face" in model.regions:
-        return region_triangles(model, "face")
-    if model.landmarks is None:
-        return None
-    nearest, _ = cKDTree(model.template[model.landmarks]).query(model.template)
-    inside = nearest < FACE_RADIUS * Frame.of(model.template).scale
-    return inside[model.faces].all(axis=1)
 
 
 def present_landmarks(model: StatModel, landmarks: np.ndarray) -> np.ndarray:

@@ -9,6 +9,7 @@ import pytest
 import torch
 import trimesh
 
+from statfit.align import Similarity
 from statfit.closest import ClosestPointQuery, open_edges
 from statfit.errors import StatfitError
 from statfit.global_align import estimate_pose
@@ -147,6 +148,51 @@ def test_pose_units_and_offset_are_found_without_landmarks(embedded_model, seed,
     estimate = estimate_pose(model, Scan.from_mesh(made.vertices, made.faces))
     assert _angle(estimate.transform.rotation, made.transform.rotation) < 3.0
     assert estimate.transform.scale == made.transform.scale         # the units, exactly: size is the modes'
+
+
+def test_the_points_beyond_the_face_fits_scalp_are_the_hair(embedded_model):
+    """On the true shape and pose, what the polish leaves out as hair is the hair: every point the
+    scanner took off the hair layer (0.056–0.104 radii out) and none of the head's."""
+    from statfit.frame import Frame
+    from statfit.global_align import _Matcher, _outside_off_the_face
+    from statfit.model import face_triangles
+
+    model = embedded_model
+    rng = np.random.default_rng(3)
+    shape = model.sample(rng)
+    made = realistic_scan(shape, model.faces, rng, clutter=0.5, units="m", posed=False, noise=0.0,
+                          clutter_parts=("hair",))
+    frame = Frame.of(model.template)
+    to_unit = lambda p: (p - frame.center) / frame.scale  # noqa: E731  (scan and model frames coincide here)
+    hair = _outside_off_the_face(_Matcher(model.faces, to_unit(model.template)), to_unit(model.template),
+                                 to_unit(shape), Similarity(1.0, np.eye(3), np.zeros(3)), to_unit(made.vertices),
+                                 face_triangles(model))
+    assert (~made.on_shape).sum() > 100
+    assert hair[~made.on_shape].mean() > 0.95 and not hair[made.on_shape].any()
+
+
+def test_hair_does_not_tilt_the_pose(embedded_model):
+    """Scans whose only clutter is hair: posed as well as with the hair cut out of the scan, and
+    better than when the last polish fits the hair too (measured: 0.09–0.29° against 0.30–0.52°)."""
+    import statfit.global_align as global_align
+
+    model = embedded_model
+    angles = {"hair left out": [], "hair fitted": [], "hair cut out": []}
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        made = realistic_scan(model.sample(rng), model.faces, rng, yaw_deg=rng.uniform(-40, 40), clutter=0.5,
+                              units="mm", clutter_parts=("hair",))
+        shape_only = made.faces[made.on_shape[made.faces].all(axis=1)]
+        for name, faces, share in (("hair left out", made.faces, global_align.MAX_HAIR_SHARE),
+                                   ("hair fitted", made.faces, -1.0), ("hair cut out", shape_only, 0.6)):
+            with pytest.MonkeyPatch.context() as patch:
+                patch.setattr(global_align, "MAX_HAIR_SHARE", share)
+                estimate = estimate_pose(model, Scan.from_mesh(made.vertices, faces))
+            angles[name].append(_angle(estimate.transform.rotation, made.transform.rotation))
+    mean = {name: float(np.mean(values)) for name, values in angles.items()}
+    assert max(angles["hair left out"]) < 0.5, angles
+    assert mean["hair left out"] < 0.6 * mean["hair fitted"], angles
+    assert mean["hair left out"] < mean["hair cut out"] + 0.1, angles
 
 
 def test_a_scan_already_on_the_model_is_left_where_it_is(embedded_model):
