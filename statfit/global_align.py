@@ -71,14 +71,14 @@ DISTINCT_DEGREES = 30.0
 # of the face's points ≤ 0.82 (docs/method.md, "The registration objective").
 CLUTTER_MATCHED = 0.87
 KEEP_FRAME = 1.05          # the scan as it lies scores within this factor of the best pose: keep it
+NEAR_OFFSET = 0.5          # ... and is polished to see whether it does only when the best pose lies this near
+                           # (model RMS radii; and within DISTINCT_DEGREES): a second polish costs ~0.4 s
 # Scan points this far outside a fit of the face alone (model RMS radii, ~4.5 mm on a head), off the
 # face, are not fitted by the polish: hair over the scalp, which the modes would bulge the head to
 # reach, tilting the pose 1-5° (docs/studies.md §16).
 HAIR_OFFSET = 0.05
-LEAD_SUBSAMPLE = 1500      # points of the two polishes that find the face (as good as 3,000 on §16's scans)
 MAX_HAIR_SHARE = 0.6       # ... unless more of the scan than this lies there: that is no head under hair
-NEAR_OFFSET = 0.5          # ... and is polished to see whether it does only when the best pose lies this near
-                           # (model RMS radii; and within DISTINCT_DEGREES): a second polish costs ~0.4 s
+LEAD_SUBSAMPLE = 1500      # points of the two polishes that find the face (as good as 3,000 on §16's scans)
 AMBIGUITY = 1.15           # runner-up score within this factor of the best: ambiguous
 FACING_MIN = -0.25         # cos between the model's face direction (+z) and the scan's mean normal
 IMPLAUSIBLE_RMS = 2.0       # coefficients (std-devs) no scan of a face needs, on average ...
@@ -399,8 +399,9 @@ def _polish(matcher: _Matcher, mean: np.ndarray, basis_t: torch.Tensor, std: tor
     (``start``'s scale is dropped, keeping the scan's centroid in place): a person's size is the
     model's to explain, by its modes and under its prior; a free scale would trade against them at
     no cost. ``move`` False holds the pose; ``region`` (F,) bool: only points attached to these
-    triangles are fitted; ``used`` (M,) bool: only these points are fitted (every point is scored). Returns the pose (model unit frame → scan unit frame),
-    its score (POLISH_TOLERANCE), matched share and the coefficients (K,) in standard deviations."""
+    triangles are fitted; ``used`` (M,) bool: only these points are fitted (every point is scored).
+    Returns the pose (model unit frame → scan unit frame), its score (POLISH_TOLERANCE), matched
+    share and the coefficients (K,) in standard deviations."""
     middle = start.inverse_apply(points).mean(axis=0)
     start = Similarity(1.0, start.rotation, start.apply(middle) - start.rotation @ middle)
     directions = _directions(basis_t, std, mean.shape)
