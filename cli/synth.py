@@ -96,6 +96,8 @@ def scan(
     parts = tuple(part.strip() for part in clutter_parts.split(",") if part.strip())
     if unknown := sorted(set(parts) - set(CLUTTER_PARTS)):
         raise StatfitError(f"unknown --clutter-parts {', '.join(unknown)}; choose from {', '.join(CLUTTER_PARTS)}")
+    if not parts:
+        raise StatfitError(f"--clutter-parts needs at least one of {', '.join(CLUTTER_PARTS)} (no clutter: --clutter 0)")
     for target in (out, gt, landmarks_out):
         if target is not None:
             check_writable(target)

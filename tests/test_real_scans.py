@@ -68,6 +68,8 @@ def test_synth_scan_clutter_parts_on_the_command_line(tmp_path):
     assert read_mesh(out)[0].shape[0] > 100
     code, err = run_cli(["synth", "scan", "--realistic", "--clutter-parts", "hair,hat", "--out", str(tmp_path / "x.ply")])
     assert code == 2 and err.count("\n") == 1 and "unknown --clutter-parts hat" in err
+    code, err = run_cli(["synth", "scan", "--realistic", "--clutter-parts", " , ", "--out", str(tmp_path / "x.ply")])
+    assert code == 2 and err.count("\n") == 1 and "needs at least one of hair, neck" in err
     assert not (tmp_path / "x.ply").exists()
 
 
