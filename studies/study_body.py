@@ -95,7 +95,8 @@ def normal_angle(fit: np.ndarray, gt: np.ndarray, faces: np.ndarray, where: np.n
     return float(np.degrees(np.arccos(cosine)).mean())
 
 
-def run_case(task: tuple[int, float, float, str, int]) -> dict:
+def run_case(task: tuple[int, float, float, str, int], iterations: int | None = None) -> dict:
+    """One fit of a held-out body from one view; ``iterations`` other than the method's (tests)."""
     seed, yaw, pitch, method, size = task
     import torch
 
@@ -111,7 +112,8 @@ def run_case(task: tuple[int, float, float, str, int]) -> dict:
     camera = camera_for_view(gt, yaw, pitch, size)
     normals, mask = render_target(gt, model.faces, camera)
     started = time.perf_counter()
-    fit = reconstruct(model, NormalMap(normals, mask), camera, method, threads=1).vertices
+    overrides = {} if iterations is None else {"iterations": iterations}
+    fit = reconstruct(model, NormalMap(normals, mask), camera, method, threads=1, **overrides).vertices
     seconds = time.perf_counter() - started
     seen = visible_vertices(gt, model.faces, camera)
     centre = -camera.rotation.numpy().T @ camera.world_to_camera[:3, 3].numpy()

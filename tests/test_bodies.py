@@ -134,19 +134,9 @@ def _fit_unseen_normals(method: str, size: int, iterations: int) -> float:
     from common import ROOT
     sys.path.insert(0, str(ROOT / "studies"))
     import study_body
-    from statfit.align import umeyama
-    from statfit.inverse_render import reconstruct
-    from statfit.metrics import visible_vertices
-    from statfit.normal_map import NormalMap
-    from statfit.synth import camera_for_view, render_target
 
     torch.set_num_threads(1)
-    model, truth = study_body.body_model(), study_body.held_out_body(4)
-    camera = camera_for_view(truth, 30.0, 10.0, size)
-    fit = reconstruct(model, NormalMap(*render_target(truth, model.faces, camera)), camera, method,
-                      threads=1, iterations=iterations).vertices
-    unseen = ~visible_vertices(truth, model.faces, camera)
-    return study_body.normal_angle(umeyama(fit, truth, with_scale=True).apply(fit), truth, model.faces, unseen)
+    return study_body.run_case((4, 30.0, 10.0, method, size), iterations)["normal_angle_unseen_deg"]
 
 
 @pytest.mark.slow
