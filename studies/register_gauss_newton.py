@@ -49,6 +49,8 @@ def pipelines() -> dict:
         "GN σ 1 … 0.01, 5 levels": (gn(0.01),),
         "GN 5 levels → stat γ 0.5 lr 0.01 300 it": (gn(0.003), stat(300, 0.01, 1000.0, 0.5)),
         "GN 5 levels → stat γ 1 lr 0.01 300 it": (gn(0.003), stat(300, 0.01, 1000.0, 1.0)),
+        "GN 5 levels → stat β 30 γ 1 lr 0.01 300 it": (gn(0.003), stat(300, 0.01, 30.0, 1.0)),
+        "GN 5 levels → stat β 300 γ 1 lr 0.03 500 it": (gn(0.003), stat(500, 0.03, 300.0, 1.0)),
         "stat γ 1 lr 0.1 600 it (from the mean)": (stat(600, 0.1, 1000.0, 1.0),),
     }
 
