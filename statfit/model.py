@@ -172,15 +172,15 @@ def region_triangles(model: StatModel, name: str) -> np.ndarray:
 FACE_RADIUS = 0.5
 
 
-def face_triangles(model: StatModel) -> np.ndarray | None:
-    """(F,) bool: the model's face — its ``face`` region, else the vertices within FACE_RADIUS RMS
+def face_triangles(model: StatModel, radius: float = FACE_RADIUS) -> np.ndarray | None:
+    """(F,) bool: the model's face — its ``face`` region, else the vertices within ``radius`` RMS
     radii of a landmark — or None for a model with neither."""
     if model.regions and "face" in model.regions:
         return region_triangles(model, "face")
     if model.landmarks is None:
         return None
     nearest, _ = cKDTree(model.template[model.landmarks]).query(model.template)
-    inside = nearest < FACE_RADIUS * Frame.of(model.template).scale
+    inside = nearest < radius * Frame.of(model.template).scale
     return inside[model.faces].all(axis=1)
 
 
