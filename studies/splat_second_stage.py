@@ -1,7 +1,7 @@
 """The splat default's second stage (docs/studies.md §14): after the same 300 statistical
 iterations (β 1000, mode gain 1, lr 0.05), which second stage trades geometry for held-out images
-best? Unfiltered vertices at three step sizes, or the statistical filter at β 10 (off-model gain
-1/11, 200 + 200 iterations). The four cases, metrics and fits of ``study_splat.py``.
+best? Unfiltered vertices at three step sizes, Laplacian-filtered (smooth) vertices at three, or the
+statistical filter at β 10 (off-model gain 1/11, 200 + 200 iterations). The four cases, metrics and fits of ``study_splat.py``.
 
 Results: ``studies/results/splat_second_stage.json`` (a rerun resumes); ``--report`` prints the table.
 From the repository root:
@@ -29,6 +29,9 @@ VARIANTS = {
     "unfiltered lr 0.0003": (SHAPE, Settings("none", 100, 0.0003)),
     "unfiltered lr 0.0006": (SHAPE, Settings("none", 100, 0.0006)),
     "unfiltered lr 0.001": (SHAPE, Settings("none", 100, 0.001)),
+    "laplacian lr 0.003": (SHAPE, Settings("laplacian", 100, 0.003, lam=19.0)),
+    "laplacian lr 0.01": (SHAPE, Settings("laplacian", 100, 0.01, lam=19.0)),
+    "laplacian lr 0.03": (SHAPE, Settings("laplacian", 100, 0.03, lam=19.0)),
     "statistical beta 10": (Settings("statistical", 200, 0.05, beta=1000.0, mode_gain=1.0),
                             Settings("statistical", 200, 0.05, beta=10.0, mode_gain=1.0)),
 }
