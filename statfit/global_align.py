@@ -142,6 +142,7 @@ class _Poses:
         return cls(np.array([pose.scale]), pose.rotation[None], pose.translation[None])
 
     def subset(self, indices: np.ndarray) -> "_Poses":
+        """The poses at ``indices`` (K,)."""
         return _Poses(self.scale[indices], self.rotation[indices], self.translation[indices])
 
     def pick(self, index: int) -> Similarity:
@@ -304,7 +305,7 @@ def estimate_pose(model: StatModel, scan: Scan, seed: int = 0) -> PoseEstimate:
     every_mode = (torch.as_tensor(np.ascontiguousarray(model.basis.T)), torch.as_tensor(model.std / frame.scale))
     polish = rng.choice(len(points), min(POLISH_SUBSAMPLE, len(points)), replace=False)
     start, hair = coarse_pose, None
-    if (face := face_triangles(model, POSE_FACE_RADIUS)) is not None:   # step 5: whole head, face alone, all but the hair
+    if (face := face_triangles(model, POSE_FACE_RADIUS)) is not None:   # step 5: head, face, all but hair
         lead = polish[:LEAD_SUBSAMPLE]
         start = _polish(matcher, mean, *every_mode, points[lead], scan.normals[lead], start)[0]
         start, _, _, face_fit = _polish(matcher, mean, *every_mode, points[lead], scan.normals[lead], start,

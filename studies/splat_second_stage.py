@@ -1,7 +1,8 @@
 """The splat default's second stage (docs/studies.md §14): after the same 300 statistical
 iterations (β 1000, mode gain 1, lr 0.05), which second stage trades geometry for held-out images
-best? Unfiltered vertices at three step sizes, Laplacian-filtered (smooth) vertices at three, or the
-statistical filter at β 10 (off-model gain 1/11, 200 + 200 iterations). The four cases, metrics and fits of ``study_splat.py``.
+best? Unfiltered vertices at three step sizes, Laplacian-filtered (smooth) vertices at three, or
+the statistical filter at β 10 (off-model gain 1/11, 200 + 200 iterations). The four cases,
+metrics and fits of ``study_splat.py``.
 
 Results: ``studies/results/splat_second_stage.json`` (a rerun resumes); ``--report`` prints the table.
 From the repository root:
