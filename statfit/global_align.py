@@ -302,25 +302,25 @@ def estimate_pose(model: StatModel, scan: Scan, seed: int = 0) -> PoseEstimate:
     others = [score for index, (pose, score, _) in enumerate(refined)
               if index != best and _angle(pose.rotation, coarse_pose.rotation) >= DISTINCT_DEGREES]
     runner_up = min(others, default=1.0)
-    every_mode = (torch.as_tensor(np.ascontiguousarray(model.basis.T)), torch.as_tensor(model.std / frame.scale))
+    every_mode = _every_mode(model, frame)
     polish = rng.choice(len(points), min(POLISH_SUBSAMPLE, len(points)), replace=False)
     start, hair = coarse_pose, None
     if (face := face_triangles(model, POSE_FACE_RADIUS)) is not None:   # step 5: head, face, all but hair
         lead = polish[:LEAD_SUBSAMPLE]
-        start = _polish(matcher, mean, *every_mode, points[lead], scan.normals[lead], start)[0]
-        start, _, _, face_fit = _polish(matcher, mean, *every_mode, points[lead], scan.normals[lead], start,
+        start = _polish(matcher, mean, every_mode, points[lead], scan.normals[lead], start)[0]
+        start, _, _, face_fit = _polish(matcher, mean, every_mode, points[lead], scan.normals[lead], start,
                                         region=face)
-        face_shape = mean + (_directions(*every_mode, mean.shape) @ torch.as_tensor(face_fit)).numpy()
+        face_shape = mean + (every_mode @ torch.as_tensor(face_fit)).numpy()
         hair = _outside_off_the_face(matcher, mean, face_shape, start, points[polish], face)
         if hair.mean() > MAX_HAIR_SHARE:   # not a head under hair: fit every point
             hair = None
-    transform, polished_score, matched, coefficients = _polish(matcher, mean, *every_mode, points[polish],
+    transform, polished_score, matched, coefficients = _polish(matcher, mean, every_mode, points[polish],
                                                                scan.normals[polish], start,
                                                                used=None if hair is None else ~hair)
     in_place = Similarity(1.0, np.eye(3), (frame.center - centroid) / frame.scale)
     if units == 1.0 and _near(in_place, coarse_pose):   # only then can the scan as it lies compete
         _, in_place_score, in_place_matched, in_place_coefficients = _polish(
-            matcher, mean, *every_mode, points[polish], scan.normals[polish], in_place, move=False)
+            matcher, mean, every_mode, points[polish], scan.normals[polish], in_place, move=False)
         if in_place_score <= KEEP_FRAME * polished_score:
             transform, matched, coefficients = in_place, in_place_matched, in_place_coefficients
     _check_plausible(coarse_matched, coefficients, TOLERANCE * frame.scale)
@@ -364,8 +364,7 @@ def refine_pose(model: StatModel, scan: Scan, start: Similarity, seed: int = 0) 
     mean = frame.to_unit(model.template)
     rng = np.random.default_rng(seed)
     polish = rng.choice(len(points), min(POLISH_SUBSAMPLE, len(points)), replace=False)
-    every_mode = (torch.as_tensor(np.ascontiguousarray(model.basis.T)), torch.as_tensor(model.std / frame.scale))
-    transform, score, matched, _ = _polish(_Matcher(model.faces, mean), mean, *every_mode, points[polish],
+    transform, score, matched, _ = _polish(_Matcher(model.faces, mean), mean, _every_mode(model, frame), points[polish],
                                            scan.normals[polish], in_units)
     return PoseEstimate(_to_scan_frame(transform, frame, centroid, units), score, matched, 1.0, units)
 
@@ -408,22 +407,22 @@ def _refine(matcher: _Matcher, mean: np.ndarray, basis_t: torch.Tensor, std: tor
     return poses.pick(0), float(score[0]), float(matched[0])
 
 
-def _polish(matcher: _Matcher, mean: np.ndarray, basis_t: torch.Tensor, std: torch.Tensor, points: np.ndarray,
+def _polish(matcher: _Matcher, mean: np.ndarray, directions: torch.Tensor, points: np.ndarray,
             normals: np.ndarray, start: Similarity, move: bool = True, region: np.ndarray | None = None,
             used: np.ndarray | None = None) -> tuple[Similarity, float, float, np.ndarray]:
-    """Gauss–Newton on a rigid pose and every coefficient at once (``basis_t`` (K, 3N), ``std``
-    (K,)): the fit's own robust point-to-plane residuals, a Gaussian prior on the coefficients only,
-    the pose updated by a small rigid motion of the scan points each step. The scale is the units'
-    (``start``'s scale is dropped, keeping the scan's centroid in place): a person's size is the
-    model's to explain, by its modes and under its prior; a free scale would trade against them at
-    no cost. ``move`` False holds the pose; ``region`` (F,) bool: only points attached to these
+    """Gauss–Newton on a rigid pose and every coefficient at once (``directions`` (N, 3, K): the
+    modes times their standard deviations, :func:`_every_mode`): the fit's own robust
+    point-to-plane residuals, a Gaussian prior on the coefficients only, the pose updated by a small
+    rigid motion of the scan points each step. The scale is the units' (``start``'s scale is
+    dropped, keeping the scan's centroid in place): a person's size is the model's to explain, by
+    its modes and under its prior; a free scale would trade against them at no cost. ``move`` False holds the pose; ``region`` (F,) bool: only points attached to these
     triangles are fitted; ``used`` (M,) bool: only these points are fitted (every point is scored).
     Returns the pose (model unit frame → scan unit frame), its score (POLISH_TOLERANCE), matched
     share and the coefficients (K,) in standard deviations."""
     middle = start.inverse_apply(points).mean(axis=0)
     start = Similarity(1.0, start.rotation, start.apply(middle) - start.rotation @ middle)
-    directions = _directions(basis_t, std, mean.shape)
-    coefficients = torch.zeros(len(std), dtype=torch.float64)
+    k = directions.shape[-1]
+    coefficients = torch.zeros(k, dtype=torch.float64)
     pose, mean_t = start, torch.as_tensor(mean)
     fitted, fitted_normals = (points, normals) if used is None else (points[used], normals[used])
     region_faces = None if region is None else torch.as_tensor(region)
@@ -442,17 +441,17 @@ def _polish(matcher: _Matcher, mean: np.ndarray, basis_t: torch.Tensor, std: tor
         if move:
             jacobian = torch.cat([jacobian, objective.pose_jacobian(centre)[:, :6]], dim=1)
         prior = torch.zeros(jacobian.shape[1], dtype=torch.float64)
-        prior[:len(std)] = POLISH_NOISE**2 / count
+        prior[:k] = POLISH_NOISE**2 / count
         lhs = jacobian.T @ jacobian / count
         lhs = lhs + torch.diag(prior + 1e-12 * float(lhs.diagonal().mean()))
         rhs = jacobian.T @ residuals / count
-        rhs[:len(std)] += prior[:len(std)] * coefficients
+        rhs[:k] += prior[:k] * coefficients
         step = -torch.linalg.solve(lhs, rhs).numpy()
-        coefficients = coefficients + torch.as_tensor(step[:len(std)])
+        coefficients = coefficients + torch.as_tensor(step[:k])
         if move:
-            rotation = Rotation.from_rotvec(step[len(std):len(std) + 3]).as_matrix()
+            rotation = Rotation.from_rotvec(step[k:k + 3]).as_matrix()
             c = centre.numpy()
-            moved = c + step[len(std) + 3:] - rotation @ c          # the scan points' motion: p ↦ R p + moved
+            moved = c + step[k + 3:] - rotation @ c          # the scan points' motion: p ↦ R p + moved
             pose = compose(pose, Similarity(1.0, rotation.T, -rotation.T @ moved))
     shape = (mean_t + directions @ coefficients).numpy()
     matcher.set_shape(shape)
@@ -462,9 +461,10 @@ def _polish(matcher: _Matcher, mean: np.ndarray, basis_t: torch.Tensor, std: tor
     return pose, float(score[0]), float(matched[0]), coefficients.numpy()
 
 
-def _directions(basis_t: torch.Tensor, std: torch.Tensor, shape: tuple[int, ...]) -> torch.Tensor:
-    """The modes scaled by their standard deviations, vertex-major: (N, 3, K)."""
-    return (basis_t * std[:, None]).T.reshape(*shape, len(std))
+def _every_mode(model: StatModel, frame: Frame) -> torch.Tensor:
+    """Every mode scaled by its standard deviation in the model's unit frame, vertex-major: (N, 3, K)."""
+    basis_t, std = torch.as_tensor(np.ascontiguousarray(model.basis.T)), torch.as_tensor(model.std / frame.scale)
+    return (basis_t * std[:, None]).T.reshape(model.num_vertices, 3, len(std))
 
 
 def _outside_off_the_face(matcher: _Matcher, mean: np.ndarray, shape: np.ndarray, pose: Similarity,
