@@ -6,7 +6,7 @@
 - hybrid:       F = α UUᵀ + (1 − α)(I + λL)⁻¹
 
 The statistical filter is applied as ``e⊥ g + Uᵀᵀ((e − e⊥) ⊙ (Uᵀ g))`` with the basis stored
-transposed, (K, 3N) contiguous, so each mat-vec streams it once. ``mode_gain`` generalises the
+transposed, (K, 3N) contiguous, so each mat-vec streams it once (on every thread: :mod:`statfit.matvec`). ``mode_gain`` generalises the
 eigenvalue 1 on the model subspace to one gain per mode (e.g. proportional to the modes' standard
 deviations, so low-variance modes move slower).
 """
@@ -16,8 +16,9 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from statfit.solvers import make_solver
 from statfit.laplacian import LaplacianKind, identity_plus, smoothing_matrix
+from statfit.matvec import expand, project
+from statfit.solvers import make_solver
 
 
 def beta_with_power(beta: float, power: float) -> float:
@@ -71,8 +72,8 @@ class StatisticalFilter:
 
     def __call__(self, g: torch.Tensor) -> torch.Tensor:
         flat = g.reshape(-1)
-        coeff = torch.mv(self.basis_t, flat).mul_(self._gain_minus_off)
-        return torch.addmv(flat, self.basis_t.t(), coeff, beta=self.off_gain).view_as(g)
+        coeff = project(self.basis_t, flat).mul_(self._gain_minus_off)
+        return expand(self.basis_t, coeff, flat, self.off_gain).view_as(g)
 
 
 class HybridFilter:
@@ -90,6 +91,6 @@ class HybridFilter:
 
     def __call__(self, g: torch.Tensor) -> torch.Tensor:
         flat = g.reshape(-1)
-        coeff = torch.mv(self.basis_t, flat).mul_(self._gain)
+        coeff = project(self.basis_t, flat).mul_(self._gain)
         smooth = self._smooth(g).reshape(-1)
-        return torch.addmv(smooth, self.basis_t.t(), coeff, beta=self.off_gain).view_as(g)
+        return expand(self.basis_t, coeff, smooth, self.off_gain).view_as(g)

@@ -17,6 +17,8 @@ from typing import Callable
 
 import torch
 
+from statfit.matvec import expand, project
+
 Filter = Callable[[torch.Tensor], torch.Tensor]
 
 
@@ -51,7 +53,7 @@ class _SubspacePrior(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x: torch.Tensor, mean: torch.Tensor, basis_t: torch.Tensor, weight: float):
         offset = (x - mean).reshape(-1)
-        outside = offset - torch.mv(basis_t.t(), torch.mv(basis_t, offset))
+        outside = expand(basis_t, project(basis_t, offset).neg_(), offset)
         ctx.save_for_backward(outside)
         ctx.weight = weight
         value = weight * outside.square().sum()
@@ -101,10 +103,10 @@ class PCACoefficients:
         return {}
 
     def _shape(self, coeffs: torch.Tensor) -> torch.Tensor:
-        return torch.mv(self.basis_t.t(), coeffs).view_as(self.mean)
+        return expand(self.basis_t, coeffs).view_as(self.mean)
 
     def _coefficients(self, grad_x: torch.Tensor) -> torch.Tensor:
-        return torch.mv(self.basis_t, grad_x.reshape(-1))
+        return project(self.basis_t, grad_x.reshape(-1))
 
 
 class RegularizedVertices:
