@@ -20,12 +20,15 @@ def test_filter_scaling_measures_every_solver_and_plots(tmp_path, monkeypatch):
     monkeypatch.setattr(filter_scaling, "BANDWIDTH_BYTES", 2**22)
     results = filter_scaling.measure(quick=True)
     from statfit.solvers import SOLVERS
+    from statfit.threads import available_cores
 
+    thread_counts = {1, available_cores()}
     assert {r["solver"] for r in results["laplacian"]} == set(SOLVERS)
-    assert len(results["statistical"]) == 2 and all(r["ms"] > 0 for r in results["statistical"])
+    assert {r["threads"] for r in results["statistical"]} == thread_counts
+    assert len(results["statistical"]) == 2 * len(thread_counts) and all(r["ms"] > 0 for r in results["statistical"])
     section = filter_scaling.section(results, tmp_path / "img")
     assert section.figures[0].stat().st_size > 0
-    assert section.markdown.count("| 32 |") == 1 + len(SOLVERS)
+    assert section.markdown.count("| 32 |") == len(thread_counts) + len(SOLVERS)
 
 
 def test_inpainting_part_times_every_method(monkeypatch):
