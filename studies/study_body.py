@@ -43,6 +43,24 @@ MODEL_CACHE = Path(os.environ.get("STATFIT_BODY_MODEL", "/tmp/statfit-study-body
 SEEDS = (1, 2, 3, 4, 5, 6)
 VIEWS = ((30.0, 10.0), (-60.0, 10.0))
 METHODS = ("default", "hybrid", "statistical", "laplacian", "pca", "regularized", "none")
+# Candidate render schedules for bodies (``--candidates``), reported apart from the methods.
+_HYBRID = {"lam": 19.0, "mode_gain": 1.0}
+CANDIDATES = {
+    "hybrid-b30-900": (("hybrid", 900, 0.05, {"beta": 30.0, **_HYBRID}),),
+    "stat300-hybrid600": (("statistical", 300, 0.05, {"beta": 1000.0, "mode_gain": 1.0}),
+                          ("hybrid", 600, 0.05, {"beta": 30.0, **_HYBRID})),
+    "hybrid-b300-300-b30-600": (("hybrid", 300, 0.05, {"beta": 300.0, **_HYBRID}),
+                                ("hybrid", 600, 0.05, {"beta": 30.0, **_HYBRID})),
+    "stat1500-hybrid1500": (("statistical", 1500, 0.01, {"beta": 1000.0, "mode_gain": 1.0}),
+                            ("hybrid", 1500, 0.01, {"beta": 30.0, **_HYBRID})),
+}
+
+
+def candidate_stages(name: str):
+    """The ``Settings`` stages of a candidate schedule."""
+    from statfit.settings import Settings
+
+    return tuple(Settings(method, iterations, lr, **extra) for method, iterations, lr, extra in CANDIDATES[name])
 
 
 @lru_cache(maxsize=1)
@@ -113,6 +131,8 @@ def run_case(task: tuple[int, float, float, str, int], iterations: int | None = 
     normals, mask = render_target(gt, model.faces, camera)
     started = time.perf_counter()
     overrides = {} if iterations is None else {"iterations": iterations}
+    if method.startswith("candidate:"):
+        overrides = {"stages": candidate_stages(method.split(":", 1)[1])}
     fit = reconstruct(model, NormalMap(normals, mask), camera, method, threads=1, **overrides).vertices
     seconds = time.perf_counter() - started
     seen = visible_vertices(gt, model.faces, camera)
@@ -137,6 +157,7 @@ def done_rows() -> list[dict]:
 
 def report(rows: list[dict]) -> str:
     methods = [m for m in METHODS if any(r["method"] == m for r in rows)]
+    methods += sorted({r["method"] for r in rows if r["method"].startswith("candidate:")})
     cases = sorted({(r["seed"], r["yaw"]) for r in rows})
     lines = ["| method | fits | all (raw) | all (scaled) | all | seen | unseen | unseen off-span | unseen normal ° | s per fit |",
              "|---|---|---|---|---|---|---|---|---|---|"]
@@ -177,6 +198,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--size", type=int, default=384)
     parser.add_argument("--methods", default=",".join(METHODS))
+    parser.add_argument("--candidates", default="", help=f"candidate schedules too: {', '.join(CANDIDATES)}")
     parser.add_argument("--seeds", default=",".join(map(str, SEEDS)))
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--report", action="store_true")
@@ -186,7 +208,8 @@ def main() -> None:
         return
     body_model()  # build the cache once, before the workers
     done = {(r["seed"], r["yaw"], r["method"], r["size"]) for r in done_rows()}
-    tasks = [(seed, yaw, pitch, method, args.size) for method in args.methods.split(",")
+    methods = [m for m in args.methods.split(",") if m] + [f"candidate:{c}" for c in args.candidates.split(",") if c]
+    tasks = [(seed, yaw, pitch, method, args.size) for method in methods
              for seed in map(int, args.seeds.split(",")) for yaw, pitch in VIEWS
              if (seed, yaw, method, args.size) not in done]
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
