@@ -26,7 +26,7 @@ def project(basis_t: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
         return torch.mv(basis_t, v)
     head = blocks * width
     block_rows = basis_t[:, :head].view(k, blocks, width).permute(1, 2, 0)          # (B, width, K)
-    out = torch.bmm(v[:head].view(blocks, 1, width), block_rows).sum(0).view(k)
+    out = torch.bmm(v[:head].reshape(blocks, 1, width), block_rows).sum(0).view(k)
     if head < columns:
         out += torch.mv(basis_t[:, head:], v[head:])
     return out
@@ -51,7 +51,7 @@ def expand(basis_t: torch.Tensor, coeff: torch.Tensor, base: torch.Tensor | None
     if base is None:
         torch.bmm(block_coeff, block_rows, out=block_out)
     else:
-        torch.baddbmm(base[:head].view(blocks, 1, width), block_coeff, block_rows, beta=base_weight, out=block_out)
+        torch.baddbmm(base[:head].reshape(blocks, 1, width), block_coeff, block_rows, beta=base_weight, out=block_out)
     if head < columns:
         tail = basis_t[:, head:].t()
         if base is None:
