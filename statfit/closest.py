@@ -49,10 +49,17 @@ def closest_on_triangles(points: torch.Tensor, a: torch.Tensor, b: torch.Tensor,
     ``a + v·ab + w·ac`` is a quadratic in (v, w), minimised inside the triangle or on one of its
     edges. Returns barycentrics (..., 3) and squared distances (...).
     """
-    ab, ac, ap = b - a, c - a, points - a
-    d00, d01, d11 = (ab * ab).sum(-1), (ab * ac).sum(-1), (ac * ac).sum(-1)
+    ab, ac = b - a, c - a
+    return _closest_in_triangle(points - a, ab, ac, (ab * ab).sum(-1), (ab * ac).sum(-1), (ac * ac).sum(-1))
+
+
+def _closest_in_triangle(ap: torch.Tensor, ab: torch.Tensor, ac: torch.Tensor, d00: torch.Tensor,
+                         d01: torch.Tensor, d11: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`closest_on_triangles` from the point's offset ``ap`` to corner a, the edges ``ab``,
+    ``ac`` (..., 3) and their dot products ab·ab, ab·ac, ac·ac (...), which depend on the triangle
+    only (so a query computes them once per triangle, not once per candidate)."""
     d20, d21, dpp = (ap * ab).sum(-1), (ap * ac).sum(-1), (ap * ap).sum(-1)
-    tiny = torch.finfo(points.dtype).tiny
+    tiny = torch.finfo(ap.dtype).tiny
 
     def sq_dist(v: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
         return dpp - 2 * (v * d20 + w * d21) + v * v * d00 + 2 * v * w * d01 + w * w * d11
@@ -104,11 +111,15 @@ class ClosestPointQuery:
             _, nearest = tree.query(points.detach().cpu().double().numpy(), k=self.k)
             nearest = torch.as_tensor(nearest.reshape(len(points), -1), device=points.device)
             candidates = self._ring[nearest].reshape(len(points), -1)      # (M, C)
-            corners = vertices[self.faces[candidates]]                     # (M, C, 3, 3)
-            bary, sq = closest_on_triangles(points[:, None, :], corners[..., 0, :],
-                                            corners[..., 1, :], corners[..., 2, :])
+            a, b, c = vertices[self.faces].unbind(dim=1)                   # (F, 3) each
+            ab, ac = b - a, c - a
+            per_triangle = torch.cat([a, ab, ac, (ab * ab).sum(-1, keepdim=True), (ab * ac).sum(-1, keepdim=True),
+                                      (ac * ac).sum(-1, keepdim=True)], dim=1)                   # (F, 12)
+            gathered = per_triangle.index_select(0, candidates.reshape(-1)).view(*candidates.shape, 12)
+            a, ab, ac = gathered[..., 0:3], gathered[..., 3:6], gathered[..., 6:9]
+            bary, sq = _closest_in_triangle(points[:, None, :] - a, ab, ac, *gathered[..., 9:12].unbind(dim=-1))
             best = sq.argmin(dim=1)
             rows = torch.arange(len(points), device=points.device)
             triangle, bary = candidates[rows, best], bary[rows, best]
-            surface = (corners[rows, best] * bary[..., None]).sum(dim=1)
+            surface = a[rows, best] + bary[:, 1:2] * ab[rows, best] + bary[:, 2:3] * ac[rows, best]
             return SurfacePoints(triangle, bary, (surface - points).norm(dim=-1))

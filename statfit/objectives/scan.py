@@ -111,10 +111,10 @@ class ScanObjective:
         """∂residuals/∂c (M', K) for vertices moving along K ``directions`` stored vertex-major,
         (N, 3, K)."""
         ids = self._corner_ids.view(-1, 3)[self._keep].reshape(-1)
-        corners = directions.index_select(0, ids).view(-1, 3, *directions.shape[1:])   # (M', 3, 3, K)
-        weights = self.attachment.barycentric[self._keep][:, :, None, None]
-        moved = (corners * weights).sum(dim=1)                                          # (M', 3, K)
-        return -(moved * self._normals[..., None]).sum(dim=1)
+        rows = directions.index_select(0, ids).view(-1, 9, directions.shape[-1])       # (M', 3 corners × xyz, K)
+        # residual i moves by −Σ_corners b_c n·Δx_c: one weight per (corner, axis), b_c n_axis
+        weights = self.attachment.barycentric[self._keep][:, :, None] * self._normals[:, None, :]
+        return -torch.bmm(weights.reshape(-1, 1, 9), rows).squeeze(1)
 
     def pose_jacobian(self, centre: torch.Tensor) -> torch.Tensor:
         """∂residuals/∂(ω, t, σ) (M', 7) for the kept scan points moved by a small similarity about
