@@ -116,10 +116,12 @@ class ClosestPointQuery:
             per_triangle = torch.cat([a, ab, ac, (ab * ab).sum(-1, keepdim=True), (ab * ac).sum(-1, keepdim=True),
                                       (ac * ac).sum(-1, keepdim=True)], dim=1)                   # (F, 12)
             gathered = per_triangle.index_select(0, candidates.reshape(-1)).view(*candidates.shape, 12)
-            a, ab, ac = gathered[..., 0:3], gathered[..., 3:6], gathered[..., 6:9]
-            bary, sq = _closest_in_triangle(points[:, None, :] - a, ab, ac, *gathered[..., 9:12].unbind(dim=-1))
+            corner, edge_b, edge_c = gathered[..., 0:3], gathered[..., 3:6], gathered[..., 6:9]  # (M, C, 3)
+            bary, sq = _closest_in_triangle(points[:, None, :] - corner, edge_b, edge_c,
+                                            *gathered[..., 9:12].unbind(dim=-1))
             best = sq.argmin(dim=1)
             rows = torch.arange(len(points), device=points.device)
             triangle, bary = candidates[rows, best], bary[rows, best]
-            surface = a[rows, best] + bary[:, 1:2] * ab[rows, best] + bary[:, 2:3] * ac[rows, best]
+            surface = (corner[rows, best] + bary[:, 1:2] * edge_b[rows, best]
+                       + bary[:, 2:3] * edge_c[rows, best])
             return SurfacePoints(triangle, bary, (surface - points).norm(dim=-1))

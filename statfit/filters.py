@@ -6,9 +6,9 @@
 - hybrid:       F = α UUᵀ + (1 − α)(I + λL)⁻¹
 
 The statistical filter is applied as ``e⊥ g + Uᵀᵀ((e − e⊥) ⊙ (Uᵀ g))`` with the basis stored
-transposed, (K, 3N) contiguous, so each mat-vec streams it once (on every thread: :mod:`statfit.matvec`). ``mode_gain`` generalises the
-eigenvalue 1 on the model subspace to one gain per mode (e.g. proportional to the modes' standard
-deviations, so low-variance modes move slower).
+transposed, (K, 3N) contiguous, so each mat-vec streams it once (on every thread:
+:mod:`statfit.matvec`). ``mode_gain`` generalises the eigenvalue 1 on the model subspace to one gain
+per mode (e.g. proportional to the modes' standard deviations, so low-variance modes move slower).
 """
 from __future__ import annotations
 

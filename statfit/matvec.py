@@ -12,19 +12,23 @@ from __future__ import annotations
 import torch
 
 
-def _blocks(basis_t: torch.Tensor) -> int:
-    """Column blocks for a product with ``basis_t``: the intra-op threads on the CPU, else 1."""
-    return torch.get_num_threads() if basis_t.device.type == "cpu" else 1
+def _blocks(basis_t: torch.Tensor) -> tuple[int, int, int]:
+    """(blocks, width, head) for a product with ``basis_t`` (K, 3N): as many column blocks of
+    ``width`` columns as intra-op threads on the CPU (1 elsewhere, or for fewer columns than
+    threads: the plain mat-vec); they cover the first ``head`` columns, a plain mat-vec the rest."""
+    blocks = torch.get_num_threads() if basis_t.device.type == "cpu" else 1
+    width = basis_t.shape[1] // blocks
+    if width == 0:
+        blocks, width = 1, basis_t.shape[1]
+    return blocks, width, blocks * width
 
 
 def project(basis_t: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """Uᵀ v: (K,) for ``basis_t`` (K, 3N) and ``v`` (3N,)."""
-    blocks = _blocks(basis_t)
+    blocks, width, head = _blocks(basis_t)
     k, columns = basis_t.shape
-    width = columns // blocks
-    if blocks == 1 or width == 0:
+    if blocks == 1:
         return torch.mv(basis_t, v)
-    head = blocks * width
     block_rows = basis_t[:, :head].view(k, blocks, width).permute(1, 2, 0)          # (B, width, K)
     out = torch.bmm(v[:head].reshape(blocks, 1, width), block_rows).sum(0).view(k)
     if head < columns:
@@ -36,14 +40,12 @@ def expand(basis_t: torch.Tensor, coeff: torch.Tensor, base: torch.Tensor | None
            base_weight: float = 1.0) -> torch.Tensor:
     """U coeff, plus ``base_weight`` · base if given: (3N,) for ``basis_t`` (K, 3N), ``coeff`` (K,),
     ``base`` (3N,)."""
-    blocks = _blocks(basis_t)
+    blocks, width, head = _blocks(basis_t)
     k, columns = basis_t.shape
-    width = columns // blocks
-    if blocks == 1 or width == 0:
+    if blocks == 1:
         if base is None:
             return torch.mv(basis_t.t(), coeff)
         return torch.addmv(base, basis_t.t(), coeff, beta=base_weight)
-    head = blocks * width
     out = torch.empty(columns, dtype=basis_t.dtype, device=basis_t.device)
     block_rows = basis_t[:, :head].view(k, blocks, width).transpose(0, 1)           # (B, K, width)
     block_coeff = coeff.view(1, 1, k).expand(blocks, 1, k)
