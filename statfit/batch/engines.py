@@ -116,9 +116,12 @@ class DaskPool:
         try:
             if address == "local":
                 # Dask starts workers with OMP/MKL/OPENBLAS_NUM_THREADS=1, which changes which BLAS
-                # kernels run (and so the last bits of a fit); statfit picks its threads itself, so its
-                # workers keep this process's environment, as the local pool's do.
-                with dask.config.set({"distributed.nanny.pre-spawn-environ": {"MALLOC_TRIM_THRESHOLD_": 65536}}):
+                # kernels run (and so the last bits of a fit), and with MALLOC_TRIM_THRESHOLD_=65536,
+                # which makes a fit up to 2× slower (statfit.batch.fits.keep_freed_memory) and which it
+                # writes into this process's own environment too, for every process started later.
+                # statfit picks its threads itself, so its workers keep this process's environment,
+                # as the local pool's do.
+                with dask.config.set({"distributed.nanny.pre-spawn-environ": {}}):
                     self._cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                                  dashboard_address=None, silence_logs=logging.ERROR)
                 self._client = Client(self._cluster)
