@@ -75,11 +75,11 @@ def run(quick: bool, device: str, image_dir) -> Section:
     for method in METHODS:
         for threads in THREADS:
             cells = {r["load"]: r for r in data["timings"]
-                     if r["method"] == method and r["asked"] == threads and r.get("align", "none") == "none"}
+                     if r["method"] == method and r["asked"] == threads and r["align"] == "none"}
             quiet, busy = cells["quiet"], cells["busy"]
             rows.append([method, "chosen (%d)" % quiet["threads"] if threads is None else threads, "none",
                          quiet["iterations"], quiet["seconds"], busy["seconds"], busy["seconds"] / quiet["seconds"]])
-        for auto in (r for r in data["timings"] if r["method"] == method and r.get("align") == "auto"):
+        for auto in (r for r in data["timings"] if r["method"] == method and r["align"] == "auto"):
             rows.append([method, "chosen (%d)" % auto["threads"], "auto", auto["iterations"], auto["seconds"], "", ""])
     speed = markdown_table(["method", "threads", "alignment", "iterations", "quiet s", "one core busy s",
                             "busy / quiet"], rows)

@@ -57,6 +57,12 @@ class CoefficientFit:
     seconds: float
 
 
+def mode_directions(basis_t: torch.Tensor, std: torch.Tensor) -> torch.Tensor:
+    """The modes (``basis_t`` = Uᵀ, (K, 3N)) times their standard deviations ``std`` (K,), vertex-major:
+    (N, 3, K), the layout :meth:`LeastSquaresObjective.jacobian` takes."""
+    return (basis_t * std[:, None]).T.reshape(-1, 3, len(std))
+
+
 def fit_coefficients(mean: torch.Tensor, basis_t: torch.Tensor, std: torch.Tensor, objective: LeastSquaresObjective,
                      x0: torch.Tensor, iterations: int, noise: float, levels: int = CONTINUATION_LEVELS,
                      tolerance: float = TOLERANCE, first_iteration: int = 0,
@@ -67,7 +73,7 @@ def fit_coefficients(mean: torch.Tensor, basis_t: torch.Tensor, std: torch.Tenso
     ``iterations`` steps in all. The prior's noise σ falls from ``noise``·√10^(levels−1) to ``noise``
     by factors of √10; each level runs until the data term improves by less than ``tolerance``."""
     started = time.perf_counter()
-    directions = (basis_t * std[:, None]).T.reshape(*mean.shape, len(std)).contiguous()   # (N, 3, K)
+    directions = mode_directions(basis_t, std).contiguous()
     coeffs = (torch.mv(basis_t, (x0 - mean).reshape(-1)) / std).double()
     eye = torch.eye(len(std), dtype=torch.float64, device=mean.device)
     schedule = [noise * math.sqrt(10.0) ** level for level in reversed(range(max(1, levels)))]

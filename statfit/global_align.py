@@ -46,7 +46,7 @@ from statfit.align import Similarity, compose
 from statfit.closest import ClosestPointQuery
 from statfit.errors import StatfitError
 from statfit.frame import Frame
-from statfit.gauss_newton import fit_coefficients
+from statfit.gauss_newton import fit_coefficients, mode_directions
 from statfit.model import StatModel, face_triangles
 from statfit.objectives.scan import ScanObjective
 from statfit.scan import Scan
@@ -415,7 +415,8 @@ def _polish(matcher: _Matcher, mean: np.ndarray, directions: torch.Tensor, point
     point-to-plane residuals, a Gaussian prior on the coefficients only, the pose updated by a small
     rigid motion of the scan points each step. The scale is the units' (``start``'s scale is
     dropped, keeping the scan's centroid in place): a person's size is the model's to explain, by
-    its modes and under its prior; a free scale would trade against them at no cost. ``move`` False holds the pose; ``region`` (F,) bool: only points attached to these
+    its modes and under its prior; a free scale would trade against them at no cost. ``move`` False
+    holds the pose; ``region`` (F,) bool: only points attached to these
     triangles are fitted; ``used`` (M,) bool: only these points are fitted (every point is scored).
     Returns the pose (model unit frame → scan unit frame), its score (POLISH_TOLERANCE), matched
     share and the coefficients (K,) in standard deviations."""
@@ -463,8 +464,8 @@ def _polish(matcher: _Matcher, mean: np.ndarray, directions: torch.Tensor, point
 
 def _every_mode(model: StatModel, frame: Frame) -> torch.Tensor:
     """Every mode scaled by its standard deviation in the model's unit frame, vertex-major: (N, 3, K)."""
-    basis_t, std = torch.as_tensor(np.ascontiguousarray(model.basis.T)), torch.as_tensor(model.std / frame.scale)
-    return (basis_t * std[:, None]).T.reshape(model.num_vertices, 3, len(std))
+    basis_t = torch.as_tensor(np.ascontiguousarray(model.basis.T))
+    return mode_directions(basis_t, torch.as_tensor(model.std / frame.scale))
 
 
 def _outside_off_the_face(matcher: _Matcher, mean: np.ndarray, shape: np.ndarray, pose: Similarity,
