@@ -22,7 +22,7 @@ back to front, turned by 90°). So:
    surface 5–9 mm over the scalp. So, for a model with a face (a ``face`` region or landmarks),
    the polish runs three times: on the whole head, then on the face alone (around its landmarks,
    POSE_FACE_RADIUS, where hair cannot reach), and last on every point except those lying
-   HAIR_OFFSET beyond the face fit's scalp.
+   :data:`statfit.hair.HAIR_OFFSET` beyond the face fit's scalp.
 6. **Score**: a truncated residual — each point's squared distance capped at TOLERANCE², a point
    whose normal disagrees counting as the cap — over the cap: 0 is a perfect fit, 1 nothing
    matched. The runner-up (another pose ≥ DISTINCT_DEGREES away) within AMBIGUITY of the best
@@ -47,6 +47,7 @@ from statfit.closest import ClosestPointQuery
 from statfit.errors import StatfitError
 from statfit.frame import Frame
 from statfit.gauss_newton import fit_coefficients, mode_directions
+from statfit.hair import MAX_HAIR_SHARE, outside_off_the_face
 from statfit.model import StatModel, face_triangles
 from statfit.objectives.scan import ScanObjective
 from statfit.scan import Scan
@@ -79,16 +80,11 @@ CLUTTER_MATCHED = 0.87
 KEEP_FRAME = 1.05          # the scan as it lies scores within this factor of the best pose: keep it
 NEAR_OFFSET = 0.5          # ... and is polished to see whether it does only when the best pose lies this near
                            # (model RMS radii; and within DISTINCT_DEGREES): a second polish costs ~0.4 s
-# Scan points this far outside a fit of the face alone (model RMS radii, ~4.5 mm on a head), off the
-# face, are not fitted by the polish: hair over the scalp, which the modes would bulge the head to
-# reach, tilting the pose 1-5° (docs/studies.md §16).
-HAIR_OFFSET = 0.05
 # The face the polish trusts over hair, for a model with landmarks but no face region: this many RMS
 # radii around them (ICT: 2.2 cm). The fit's face (FACE_RADIUS, 0.5) reaches over the hairline, so
 # hair there tilted the face-only pass and escaped the hair test: hair-and-neck scans of the benchmark
 # posed 1.85° off on average at 0.5, 1.44° at 0.35, 1.19° at 0.25; clean scans 0.42° and 0.47°.
 POSE_FACE_RADIUS = 0.25
-MAX_HAIR_SHARE = 0.6       # ... unless more of the scan than this lies there: that is no head under hair
 LEAD_SUBSAMPLE = 1500      # points of the two polishes that find the face (as good as 3,000 on §16's scans)
 AMBIGUITY = 1.15           # runner-up score within this factor of the best: ambiguous
 FACING_MIN = -0.25         # cos between the model's face direction (+z) and the scan's mean normal
@@ -311,7 +307,8 @@ def estimate_pose(model: StatModel, scan: Scan, seed: int = 0) -> PoseEstimate:
         start, _, _, face_fit = _polish(matcher, mean, every_mode, points[lead], scan.normals[lead], start,
                                         region=face)
         face_shape = mean + (every_mode @ torch.as_tensor(face_fit)).numpy()
-        hair = _outside_off_the_face(matcher, mean, face_shape, start, points[polish], face)
+        hair = outside_off_the_face(matcher.query, torch.as_tensor(face_shape),
+                                    torch.as_tensor(start.inverse_apply(points[polish])), torch.as_tensor(face)).numpy()
         if hair.mean() > MAX_HAIR_SHARE:   # not a head under hair: fit every point
             hair = None
     transform, polished_score, matched, coefficients = _polish(matcher, mean, every_mode, points[polish],
@@ -466,19 +463,3 @@ def _every_mode(model: StatModel, frame: Frame) -> torch.Tensor:
     """Every mode scaled by its standard deviation in the model's unit frame, vertex-major: (N, 3, K)."""
     basis_t = torch.as_tensor(np.ascontiguousarray(model.basis.T))
     return mode_directions(basis_t, torch.as_tensor(model.std / frame.scale))
-
-
-def _outside_off_the_face(matcher: _Matcher, mean: np.ndarray, shape: np.ndarray, pose: Similarity,
-                          points: np.ndarray, face: np.ndarray) -> np.ndarray:
-    """(M,) bool: the points (scan unit frame) lying more than HAIR_OFFSET outside ``shape`` (N, 3,
-    model unit frame) in ``pose``, nearest to a vertex off the ``face`` (F,) bool triangles: hair,
-    or whatever else covers the head where a fit of the face alone expects the scalp. The matcher is
-    left on ``mean``."""
-    matcher.set_shape(shape)
-    local = pose.inverse_apply(points)
-    _, nearest = matcher.tree.query(local)
-    outside = ((local - shape[nearest]) * matcher.normals[nearest]).sum(axis=1)
-    matcher.set_shape(mean)
-    on_face = np.zeros(len(shape), dtype=bool)
-    on_face[matcher.faces[face].reshape(-1)] = True
-    return (outside > HAIR_OFFSET) & ~on_face[nearest]

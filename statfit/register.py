@@ -15,6 +15,7 @@ from statfit.errors import StatfitError, StatfitWarning
 from statfit.fit import StageTimer
 from statfit.frame import Frame
 from statfit.global_align import CLUTTER_MATCHED, DISTINCT_DEGREES, estimate_pose, refine_pose
+from statfit.hair import MAX_HAIR_SHARE, hair_points
 from statfit.methods import resolve
 from statfit.settings import FitSpace, Settings
 from statfit.model import StatModel, face_triangles, region_triangles
@@ -140,8 +141,9 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
     scan by a similarity first (refined by ICP when ``align`` is rigid or similarity), then stay a
     fit term of ``landmark_weight`` (0: the start only; :mod:`statfit.objectives.landmarks`).
     ``clutter`` turns on the data term's rules for points off the template (normals, robust
-    distance; :mod:`statfit.objectives.scan`) and, without a ``region``, keeps the data term to the
-    model's face (:func:`face_triangles`: hair over the scalp passes every rule); ``None``: on when
+    distance; :mod:`statfit.objectives.scan`) and, without a ``region``, leaves out the points a fit
+    of the model's face alone finds to be hair (:mod:`statfit.hair`: hair passes every rule), or keeps
+    the data term to the face (:func:`face_triangles`) when most of the scan is out there; ``None``: on when
     the automatic alignment found more than 1 − CLUTTER_MATCHED of the points unexplained by its fit
     with every mode.
     ``on_snapshot(iteration, vertices)`` receives the current vertices (N, 3), in the scan's frame,
@@ -178,11 +180,18 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
         query = ClosestPointQuery(model.faces, model.num_vertices, k=2, device=torch_device)
         if clutter is None:   # the pose search found points no shape of the model explains
             clutter = pose is not None and pose["matched"] < CLUTTER_MATCHED
+        hair_share = None
         if clutter and region is None and (face := face_triangles(model)) is not None:
-            region_faces = torch.as_tensor(face, device=torch_device)    # hair hides the scalp: fit the face
+            face = torch.as_tensor(face, device=torch_device)
+            hair = hair_points(space, query, fit_points, fit_normals, face, trim)
+            hair_share = float(hair.double().mean())
+            if hair_share <= MAX_HAIR_SHARE:    # fit everything but the hair
+                fit_points, fit_normals = fit_points[~hair], fit_normals[~hair]
+            else:                               # no head under that much: fit the face alone
+                region_faces = face
         if pose is not None:
             pose = {**pose, "clutter_rules": clutter, "face_only": clutter and region is None
-                    and region_faces is not None}
+                    and region_faces is not None, "hair_share": hair_share}
         objective = ScanObjective(fit_points, query, refresh_every=refresh_every, trim=trim, region_faces=region_faces,
                                   normals=fit_normals, clutter=clutter)
         median = float(objective.refresh(space.mean).distance.median())
