@@ -26,6 +26,15 @@ STUDY_SCAN_CASES = SCAN_CASES | {
     "nose-sneer": (107, "noseSneer_R", 1.0, 45.0, 0.0),
 }
 HELD_OUT_SCAN_CASES = ("jaw-forward", "frown", "nose-sneer")
+# The register default until 2026-11-25 (docs/studies.md §9), kept for the studies that compare with it.
+FORMER_DEFAULT = "former default (statistical 4,000 + 1,333)"
+
+
+def former_default_stages() -> tuple:
+    from statfit.settings import Settings
+
+    return (Settings("statistical", 4000, 0.03, beta=1000.0, mode_gain=1.0),
+            Settings("statistical", 1333, 0.01, beta=1000.0, mode_gain=0.5))
 NORMAL_CASES = {
     "jaw-open": (3, "jawOpen", 0.8, 20.0, 0.0),
     "smile": (11, "mouthSmile_R", 1.0, 0.0, 0.0),

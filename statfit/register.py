@@ -34,7 +34,7 @@ IMPLAUSIBLE_COORDINATE = 1e9
 FAR_DISTANCE = 0.25
 ROBUST_ALIGNMENT_ROUNDS = 10
 # Weight of the landmark term against the scan's mean squared distance (docs/studies.md §12).
-LANDMARK_WEIGHT = 10.0
+LANDMARK_WEIGHT = 1.0
 
 
 def check_scan(points: np.ndarray, source: str = "scan") -> np.ndarray:

@@ -35,7 +35,9 @@ class Settings:
     (Adam, or UniformAdam for filtered methods; ``lr``, ``adam_betas``) or "gauss-newton" (pca on a scan:
     the closed-form coefficient solve, ``iterations`` an upper bound, ``noise`` σ the residual noise
     that weighs the Gaussian prior, in fit-frame units, reached through ``levels`` continuation
-    levels). Out-of-range values raise StatfitError naming the setting.
+    levels). ``landmarks`` False: the stage does not fit a landmark term (the landmarks, if given,
+    still place the start and the other stages). Out-of-range values raise StatfitError naming the
+    setting.
     """
 
     method: str
@@ -51,6 +53,7 @@ class Settings:
     optimizer: str = "adam"
     noise: float = 0.003
     levels: int = 5
+    landmarks: bool = True
 
     def __post_init__(self) -> None:
         check_int("iterations", self.iterations, 1, MAX_ITERATIONS)

@@ -16,6 +16,7 @@ from statfit.errors import StatfitError
 from statfit.fit import Objective, Progress, Snapshot, StageTimer, run_fit
 from statfit.gauss_newton import fit_coefficients
 from statfit.methods import build
+from statfit.objectives.landmarks import WithLandmarks
 from statfit.settings import FitSpace, Settings
 
 
@@ -54,17 +55,19 @@ def run_stages(stages: tuple[Settings, ...], space: FitSpace, objective: Objecti
     x, done, loss = x0, 0, {}
     for settings in stages:
         objective.reset()
+        stage_objective = objective if settings.landmarks or not isinstance(objective, WithLandmarks) \
+            else objective.scan
         if settings.optimizer == "gauss-newton":
-            if not hasattr(objective, "jacobian"):
+            if not hasattr(stage_objective, "jacobian"):
                 raise StatfitError("the Gauss–Newton pca stage needs a least-squares objective (scan registration); "
                                    "use the Adam pca stage here")
             with timer("gauss-newton"):
-                result = fit_coefficients(space.mean, space.basis_t, space.std, objective, x, settings.iterations,
+                result = fit_coefficients(space.mean, space.basis_t, space.std, stage_objective, x, settings.iterations,
                                           settings.noise, settings.levels, first_iteration=done, on_record=on_record,
                                           on_snapshot=on_snapshot)
         else:
             param, optimizer = build(settings, space, x)
-            result = run_fit(param, optimizer, objective, settings.iterations, on_record=on_record, timer=timer,
+            result = run_fit(param, optimizer, stage_objective, settings.iterations, on_record=on_record, timer=timer,
                              first_iteration=done, on_snapshot=on_snapshot)
         x, done, loss = result.vertices, done + result.iterations, result.loss
     return PipelineResult(x, loss, done)

@@ -44,7 +44,7 @@ INNER = slice(17, 68)
 NOISE_CM = 0.1
 BUMPS, BUMP_WIDTH, BUMP_CM = 6, 0.3, 0.2   # width in RMS radii
 SCAN_POINTS = 6000
-METHODS = ("mean", "default", "statistical", "hybrid", "laplacian", "pca", "regularized", "none")
+METHODS = ("mean", "default", "former default (statistical 4,000 + 1,333)", "statistical", "hybrid", "laplacian", "pca", "regularized", "none")
 
 
 def candidates() -> dict:
@@ -54,7 +54,9 @@ def candidates() -> dict:
     def gn(noise: float, levels: int = 5) -> Settings:
         return Settings("pca", 200, 0.0, optimizer="gauss-newton", noise=noise, levels=levels)
 
-    tried = {}
+    from cases import FORMER_DEFAULT, former_default_stages
+
+    tried = {FORMER_DEFAULT: (former_default_stages(), {})}
     for weight in (0.0, 1.0, 10.0):
         for noise in (0.003, 0.01, 0.03):
             tried[f"pca σ {noise} w {weight:g}"] = ((gn(noise),), {"landmark_weight": weight})
@@ -64,6 +66,8 @@ def candidates() -> dict:
                 (gn(noise), Settings("laplacian", 300, 0.03, lam=300.0)), {"landmark_weight": weight})
             tried[f"pca σ {noise} → statistical β 100 lr 0.01 300 it w {weight:g}"] = (
                 (gn(noise), Settings("statistical", 300, 0.01, beta=100.0)), {"landmark_weight": weight})
+        tried[f"pca σ 0.003 → hybrid β 1 lr 0.006 200 it w {weight:g}"] = (
+            (gn(0.003), Settings("hybrid", 200, 0.006, beta=1.0, lam=19.0)), {"landmark_weight": weight})
     return tried
 
 

@@ -24,7 +24,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 CASES = ("jaw-open", "smile", "brow-up", "cheek-puff")
 WEIGHTS = (0.0, 0.1, 1.0, 10.0, 100.0)
-METHODS = ("default", "pca")
+METHODS = ("default", "former default (statistical 4,000 + 1,333)", "pca")
 MODES = 30
 INNER = slice(17, 68)
 NOSE_TIP = 30 - 17  # Multi-PIE 30, among the inner 51
@@ -62,7 +62,11 @@ def fit(case: str, method: str, weight: float) -> dict:
     landmarks = truth[indices] + rng.normal(scale=NOISE_MM, size=(len(indices), 3))
     direction = rng.normal(size=3)
     landmarks[NOSE_TIP] += MISPLACED_MM * direction / np.linalg.norm(direction)
-    result = register(model, move(data.points), method, landmarks=landmarks, landmark_weight=weight, threads=1)
+    from cases import FORMER_DEFAULT, former_default_stages
+
+    stages = former_default_stages() if method == FORMER_DEFAULT else None
+    result = register(model, move(data.points), "default" if stages else method, stages=stages, landmarks=landmarks,
+                      landmark_weight=weight, threads=1)
     return {"case": case, "method": method, "weight": weight, "seconds": result.seconds,
             "landmark_mm": float(np.linalg.norm(result.vertices[indices] - truth[indices], axis=1).mean()),
             "all_mm": float(np.linalg.norm(result.vertices - truth, axis=1).mean())}

@@ -38,8 +38,11 @@ def pipelines() -> dict:
     def stat(iterations: int, lr: float, beta: float, gain: float) -> Settings:
         return Settings("statistical", iterations, lr, beta=beta, mode_gain=gain)
 
+    from cases import FORMER_DEFAULT, former_default_stages
+
     return {
         "default (shipped)": PIPELINES["register"]["default"].stages,
+        FORMER_DEFAULT: former_default_stages(),
         "GN σ 0, no continuation": (gn(0.0, 1),),
         "GN σ 0.01, no continuation": (gn(0.01, 1),),
         "GN σ 0.03, no continuation": (gn(0.03, 1),),
@@ -51,11 +54,16 @@ def pipelines() -> dict:
         "GN 5 levels → stat γ 1 lr 0.01 300 it": (gn(0.003), stat(300, 0.01, 1000.0, 1.0)),
         "GN 5 levels → stat β 30 γ 1 lr 0.01 300 it": (gn(0.003), stat(300, 0.01, 30.0, 1.0)),
         "GN 5 levels → stat β 300 γ 1 lr 0.03 500 it": (gn(0.003), stat(500, 0.03, 300.0, 1.0)),
+        "GN 5 levels → laplacian λ 19 lr 0.003 300 it": (gn(0.003), Settings("laplacian", 300, 0.003, lam=19.0)),
+        "GN 5 levels → laplacian λ 19 lr 0.003 600 it": (gn(0.003), Settings("laplacian", 600, 0.003, lam=19.0)),
+        "GN 5 levels → hybrid β 30 lr 0.003 300 it": (gn(0.003), Settings("hybrid", 300, 0.003, beta=30.0, lam=19.0)),
+        "GN 5 levels → hybrid β 1 lr 0.003 600 it": (gn(0.003), Settings("hybrid", 600, 0.003, beta=1.0, lam=19.0)),
+        "GN 5 levels → hybrid β 1 lr 0.006 300 it": (gn(0.003), Settings("hybrid", 300, 0.006, beta=1.0, lam=19.0)),
         "stat γ 1 lr 0.1 600 it (from the mean)": (stat(600, 0.1, 1000.0, 1.0),),
     }
 
 
-OFF_SPAN = ("default (shipped)", "GN σ 0.01, no continuation", "GN σ 0.3 … 0.003, 5 levels (pca)",
+OFF_SPAN = ("default (shipped)", "former default (statistical 4,000 + 1,333)", "GN σ 0.01, no continuation", "GN σ 0.3 … 0.003, 5 levels (pca)",
             "GN 5 levels → stat γ 0.5 lr 0.01 300 it")
 
 

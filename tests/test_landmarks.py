@@ -87,7 +87,7 @@ def test_the_landmark_term_holds_the_landmarks_where_the_start_alone_drifts(embe
     with the term the other landmarks end ≤ 0.5x as far from the truth as with the start only."""
     from conftest import run_cli
     from statfit.io.mesh import points_bytes
-    from statfit.register import register
+    from statfit.register import LANDMARK_WEIGHT, register
     from statfit.synth import sample_target, scan_from_view
 
     rng = np.random.default_rng(seed)
@@ -97,13 +97,13 @@ def test_the_landmark_term_holds_the_landmarks_where_the_start_alone_drifts(embe
     landmarks[0] += 0.5 * np.ptp(embedded_model.template, axis=0)
     small = embedded_model.truncated(10)
     errors = {}
-    for weight in (0.0, 10.0):
+    for weight in (0.0, LANDMARK_WEIGHT):
         fit = register(small, points, "default", landmarks=landmarks, landmark_weight=weight, iterations=400,
                        align="none")     # the landmark similarity alone places both: the term is what differs
         errors[weight] = (np.linalg.norm(fit.vertices[small.landmarks][1:] - landmarks[1:], axis=1).mean(),
                           np.linalg.norm(fit.vertices - target, axis=1).mean())
-    assert errors[10.0][0] <= 0.5 * errors[0.0][0], errors
-    assert errors[10.0][1] <= 1.1 * errors[0.0][1], errors
+    assert errors[LANDMARK_WEIGHT][0] <= 0.5 * errors[0.0][0], errors
+    assert errors[LANDMARK_WEIGHT][1] <= 1.1 * errors[0.0][1], errors
     # The same from the command line, with the landmarks as an iBUG .pts file.
     (tmp_path / "scan.ply").write_bytes(points_bytes(points))
     rows = "\n".join(" ".join(f"{v:.9g}" for v in row) for row in landmarks)
@@ -141,3 +141,28 @@ def test_landmarks_on_half_a_face_place_a_start_the_scan_then_corrects(embedded_
     assert degrees(refined.rotation) < 0.6
     assert refined.scale == 10.0
 
+
+
+def test_a_stage_without_landmarks_fits_the_scan_alone(embedded_model):
+    """``landmarks=False``: the closed-form stage ignores the landmark term (the result is the fit
+    with the landmarks placing the start only, weight 0, exactly); with True it fits them."""
+    import importlib
+    from dataclasses import replace
+
+    from statfit.methods import resolve
+
+    register = importlib.import_module("statfit.register").register
+    rng = np.random.default_rng(5)
+    from statfit.synth import sample_target, scan_from_view
+
+    target = sample_target(embedded_model, rng, 1.0)
+    points = scan_from_view(target, embedded_model.faces, rng, 2000, 20.0)
+    landmarks = target[embedded_model.landmarks] + 0.05 * np.ptp(embedded_model.template, axis=0)  # all off
+    closed_form = replace(resolve("pca")[0], landmarks=False)
+    plain = register(embedded_model, points, stages=(closed_form,), landmarks=landmarks, landmark_weight=0.0,
+                     align="none")
+    ignored = register(embedded_model, points, stages=(closed_form,), landmarks=landmarks, align="none")
+    fitted = register(embedded_model, points, stages=(replace(closed_form, landmarks=True),), landmarks=landmarks,
+                      align="none")
+    np.testing.assert_array_equal(ignored.vertices, plain.vertices)
+    assert not np.allclose(fitted.vertices, plain.vertices, atol=1e-4)

@@ -49,8 +49,16 @@ def test_lr_does_not_apply_to_the_gauss_newton_stage():
 
 
 def test_pipeline_iterations_are_split_in_proportion():
+    own = [s.iterations for s in resolve("default")]
     stages = resolve("default", iterations=100)
-    assert sum(s.iterations for s in stages) == 100 and stages[0].iterations == 75
+    assert sum(s.iterations for s in stages) == 100
+    assert stages[0].iterations == round(100 * own[0] / sum(own))
+
+
+def test_a_pipelines_step_size_is_its_gradient_stages():
+    stages = resolve("default", lr=0.02)
+    assert [s.optimizer for s in stages] == ["gauss-newton", "adam"]
+    assert stages[0].lr == resolve("default")[0].lr and stages[1].lr == 0.02
 
 
 def wiener_filter(settings: Settings, space: FitSpace, x0: torch.Tensor):
