@@ -15,8 +15,8 @@ import torch
 
 from statfit.closest import ClosestPointQuery
 from statfit.gauss_newton import fit_coefficients
-from statfit.objectives.scan import ScanObjective
 from statfit.methods import resolve
+from statfit.objectives.scan import ScanObjective
 from statfit.settings import FitSpace
 
 # Scan points this far outside a fit of the face alone (model RMS radii, ~4.5 mm on a head), off the

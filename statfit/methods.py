@@ -177,20 +177,20 @@ class Pipeline:
     summary: str = ""
 
 
-# register: the closed-form coefficients (Gauss–Newton with continuation) find the shape in the model's
-# span in ~1 s — without the landmark term, which a converged solve meets by bending what the scan does
-# not show (docs/studies.md §15) — then 200 UniformAdam steps of the hybrid filter with β = 1 (half of each step in the
-# span, half smooth motion off it) bend the mesh to what the span cannot make: lower error than the
-# former 5,333 statistical steps on all nine study cases, in and off the span, at a tenth of the time
-# (docs/studies.md §9). render: the hybrid filter with mode gains (γ = 1),
-# the lowest error over all vertices of everything tried (§5), in 450 iterations of a 5× larger step
+# register: the closed-form coefficients (Gauss–Newton with continuation) find the shape in the
+# model's span in ~1 s — without the landmark term, which a converged solve meets by bending what the
+# scan does not show (docs/studies.md §15) — then 200 UniformAdam steps of the hybrid filter with
+# β = 1 (half of each step in the span, half smooth motion off it) bend the mesh to what the span
+# cannot make: lower error than the former 5,333 statistical steps on all nine study cases, in and
+# off the span, at a tenth of the time (docs/studies.md §9). render: the hybrid filter with mode
+# gains (γ = 1), the lowest error over all vertices of everything tried (§5), in 450 iterations of a 5× larger step
 # instead of 3,000: β 30 first, then β 10, whose larger off-model gain (1/11 instead of 1/31) lets
 # the expression in — lower error on all four study cases in a quarter of the time (§11). splat: the
 # statistical filter finds the shape, then 100 unfiltered steps at `none`'s own step size let the
 # splats' images in: +1.1 dB held-out PSNR over `pca` for +0.3 points of geometry error (§14).
 PIPELINES: dict[str, dict[str, Pipeline]] = {
-    "register": {"default": Pipeline((Settings("pca", GAUSS_NEWTON_ITERATIONS, 0.0, optimizer="gauss-newton", noise=0.003,
-                                               landmarks=False),
+    "register": {"default": Pipeline((Settings("pca", GAUSS_NEWTON_ITERATIONS, 0.0, optimizer="gauss-newton",
+                                               noise=0.003, landmarks=False),
                                       Settings("hybrid", 200, 0.006, beta=1.0, lam=19.0)),
                                      "the closed-form coefficients, then 200 hybrid steps (docs/studies.md §9)")},
     "render": {"default": Pipeline((Settings("hybrid", 150, 0.05, beta=30.0, lam=19.0, mode_gain=1.0),

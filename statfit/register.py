@@ -33,7 +33,8 @@ IMPLAUSIBLE_COORDINATE = 1e9
 # Median scan-to-template distance (in model RMS radii) above which the scan is "far" from the model.
 FAR_DISTANCE = 0.25
 ROBUST_ALIGNMENT_ROUNDS = 10
-# Weight of the landmark term against the scan's mean squared distance (docs/studies.md §12).
+# Weight of the landmark term against the scan's mean squared distance (docs/studies.md §12: with the
+# default pipeline, 1 holds the landmarks as well as 10 and the rest of the mesh nearer).
 LANDMARK_WEIGHT = 1.0
 
 
@@ -142,8 +143,9 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
     fit term of ``landmark_weight`` (0: the start only; :mod:`statfit.objectives.landmarks`).
     ``clutter`` turns on the data term's rules for points off the template (normals, robust
     distance; :mod:`statfit.objectives.scan`) and, without a ``region``, leaves out the points a fit
-    of the model's face alone finds to be hair (:mod:`statfit.hair`: hair passes every rule), or keeps
-    the data term to the face (:func:`face_triangles`) when most of the scan is out there; ``None``: on when
+    of the model's face alone finds to be hair (:mod:`statfit.hair`: hair passes every rule), or
+    keeps the data term to the face (:func:`face_triangles`) when most of the scan is out there;
+    ``None``: on when
     the automatic alignment found more than 1 − CLUTTER_MATCHED of the points unexplained by its fit
     with every mode.
     ``on_snapshot(iteration, vertices)`` receives the current vertices (N, 3), in the scan's frame,
