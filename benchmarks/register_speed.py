@@ -1,5 +1,6 @@
-"""Part 6: registration speed and accuracy side by side — the shipped default and the closed-form
-``pca`` on the ICT head (4,300-point scans).
+"""Part 6: registration speed and accuracy side by side — the shipped default, the default until
+2026-11-25 (two statistical stages, 4,000 + 1,333 steps) and the closed-form ``pca`` on the ICT
+head (4,300-point scans).
 
 1. Seconds of one fit (jaw-open case, timed inside a fresh process after a warm-up fit) on 1
    thread, 2 threads and the thread count statfit chooses, on a quiet machine and with a second
@@ -15,14 +16,15 @@ from __future__ import annotations
 import subprocess
 import sys
 import time
+from dataclasses import replace
 
-from cases import HELD_OUT_SCAN_CASES, STUDY_SCAN_CASES, scan_case
+from cases import FORMER_DEFAULT, HELD_OUT_SCAN_CASES, STUDY_SCAN_CASES, former_default_stages, scan_case
 from common import Section, in_child, markdown_table
 
-METHODS = ("default", "pca")
+METHODS = ("default", FORMER_DEFAULT, "pca")
 THREADS = (1, 2, None)  # None: statfit's choice
-FULL = {"cases": tuple(STUDY_SCAN_CASES), "iterations": None}
-QUICK = {"cases": ("jaw-open",), "iterations": 40}
+FULL = {"cases": tuple(STUDY_SCAN_CASES), "iterations": None, "methods": METHODS}
+QUICK = {"cases": ("jaw-open",), "iterations": 40, "methods": ("default", "pca")}   # the former default: 27 s a fit
 BUSY = "import time\nend = time.time() + 3600\nwhile time.time() < end: pass"
 
 
@@ -38,9 +40,13 @@ def fit_once(method: str, threads: int | None, iterations: int | None, case: str
     flush_denormals_everywhere()
     data = scan_case(case)
     model = ict_model()
-    register(model, data.points, method, iterations=5, threads=threads, align=align)
+    stages = former_default_stages() if method == FORMER_DEFAULT else None   # its iterations as they were
+    shipped = "default" if stages else method
+    warm = tuple(replace(stage, iterations=5) for stage in stages) if stages else None
+    register(model, data.points, shipped, iterations=None if stages else 5, stages=warm, threads=threads, align=align)
     started = time.perf_counter()
-    result = register(model, data.points, method, iterations=iterations, threads=threads, align=align)
+    result = register(model, data.points, shipped, iterations=None if stages else iterations, stages=stages,
+                      threads=threads, align=align)
     seconds = time.perf_counter() - started
     return {"seconds": seconds, "iterations": result.iterations,
             "threads": choose_threads(model.basis.size, threads),
@@ -53,7 +59,7 @@ def measure(quick: bool) -> dict:
     for load in ("quiet", "busy"):
         busy = subprocess.Popen([sys.executable, "-c", BUSY]) if load == "busy" else None
         try:
-            for method in METHODS:
+            for method in config["methods"]:
                 for threads in THREADS:
                     row = in_child("register_speed", "fit_once", method, threads, config["iterations"], threads=2)
                     timings.append({"load": load, "method": method, "asked": threads, "align": "none"} | row)
@@ -65,14 +71,14 @@ def measure(quick: bool) -> dict:
             if busy is not None:
                 busy.kill()
     errors = {method: {case: in_child("register_speed", "fit_once", method, None, config["iterations"], case,
-                                      threads=1)["error"] for case in config["cases"]} for method in METHODS}
+                                      threads=1)["error"] for case in config["cases"]} for method in config["methods"]}
     return {"timings": timings, "errors": errors}
 
 
 def run(quick: bool, device: str, image_dir) -> Section:
     data = measure(quick)
     rows = []
-    for method in METHODS:
+    for method in data["errors"]:
         for threads in THREADS:
             cells = {r["load"]: r for r in data["timings"]
                      if r["method"] == method and r["asked"] == threads and r["align"] == "none"}
