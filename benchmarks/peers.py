@@ -262,7 +262,7 @@ def _label(result: dict[str, Any]) -> str:
     return {"amberg": "trimesh nricp_amberg", "sumner": "trimesh nricp_sumner", "cpd": "pycpd deformable"}[result["tool"]]
 
 
-def run(quick: bool, device: str = "cpu", image_dir: Path | None = None) -> Section:
+def measure(quick: bool, device: str = "cpu") -> dict:
     """All peers on the scan cases (quick: jaw-open only, shorter runs, see ``_jobs``)."""
     cases = ["jaw-open"] if quick else list(SCAN_CASES)
     results, template, pairs = [], {}, []
@@ -278,6 +278,25 @@ def run(quick: bool, device: str = "cpu", image_dir: Path | None = None) -> Sect
             diff = np.abs(np.asarray(ours.pop("unit_vertices")) - np.asarray(theirs.pop("unit_vertices"))).max()
             pairs.append((name, ours, theirs, float(diff)))
         results += case_results
+    return {"quick": quick, "device": device, "template": template, "results": results,
+            "laplacian_max_difference": [[n, o["settings"], d] for n, o, _, d in pairs]}
+
+
+def run(quick: bool, device: str = "cpu", image_dir: Path | None = None) -> Section:
+    return section(measure(quick, device))
+
+
+def section(data: dict) -> Section:
+    """The tables of :func:`measure`'s results (also from a saved results file)."""
+    quick, device, template, results = data["quick"], data["device"], data["template"], data["results"]
+    cases = list(template)
+
+    def laplacian_run(name: str, tool: str, settings: dict) -> dict:
+        return next(r for r in results if r["case"] == name and r["tool"] == tool
+                    and r["settings"]["preset"] == settings["preset"])
+
+    pairs = [(name, laplacian_run(name, "statfit-laplacian", settings), laplacian_run(name, "largesteps", settings),
+              diff) for name, settings, diff in data["laplacian_max_difference"]]
     pair_rows = [[name, _label(r), r["errors"]["all"], r["errors"]["observed"], r["errors"]["unobserved"],
                   r["setup_s"], r["ms_per_iteration"], diff]
                  for name, ours, theirs, diff in pairs for r in (ours, theirs)]
@@ -295,9 +314,7 @@ def run(quick: bool, device: str = "cpu", image_dir: Path | None = None) -> Sect
         markdown_table(["case", "tool", "all", "observed", "unobserved", "wall s", "peak RSS MB"], rows),
         PEER_NOTES.format(amberg=AMBERG_STEPS, amberg_threshold=AMBERG_THRESHOLD, sumner=SUMNER_STEPS,
                           sumner_threshold=SUMNER_THRESHOLD, **CPD)])
-    return Section("peers", "Peers on the scan cases", markdown,
-                   data={"quick": quick, "device": device, "template": template, "results": results,
-                         "laplacian_max_difference": [[n, o["settings"], d] for n, o, _, d in pairs]})
+    return Section("peers", "Peers on the scan cases", markdown, data=data)
 
 
 def main() -> None:
