@@ -262,8 +262,9 @@ def _label(result: dict[str, Any]) -> str:
     return {"amberg": "trimesh nricp_amberg", "sumner": "trimesh nricp_sumner", "cpd": "pycpd deformable"}[result["tool"]]
 
 
-def measure(quick: bool, device: str = "cpu") -> dict:
-    """All peers on the scan cases (quick: jaw-open only, shorter runs, see ``_jobs``)."""
+def measure_all(quick: bool, device: str = "cpu") -> dict:
+    """All peers on the scan cases (quick: jaw-open only, shorter runs, see ``_jobs``), each tool's
+    run by :func:`measure` in a fresh process."""
     cases = ["jaw-open"] if quick else list(SCAN_CASES)
     results, template, pairs = [], {}, []
     for name in cases:
@@ -283,7 +284,7 @@ def measure(quick: bool, device: str = "cpu") -> dict:
 
 
 def run(quick: bool, device: str = "cpu", image_dir: Path | None = None) -> Section:
-    return section(measure(quick, device))
+    return section(measure_all(quick, device))
 
 
 def section(data: dict) -> Section:

@@ -145,9 +145,8 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
     distance; :mod:`statfit.objectives.scan`) and, without a ``region``, leaves out the points a fit
     of the model's face alone finds to be hair (:mod:`statfit.hair`: hair passes every rule), or
     keeps the data term to the face (:func:`face_triangles`) when most of the scan is out there;
-    ``None``: on when
-    the automatic alignment found more than 1 − CLUTTER_MATCHED of the points unexplained by its fit
-    with every mode.
+    ``None``: on when the automatic alignment found more than 1 − CLUTTER_MATCHED of the points
+    unexplained by its fit with every mode.
     ``on_snapshot(iteration, vertices)`` receives the current vertices (N, 3), in the scan's frame,
     every 10 iterations (e.g. to trace the error against a ground truth). ``threads``: torch
     intra-op threads for the fit (default: chosen from the model's size, :mod:`statfit.threads`).

@@ -55,8 +55,7 @@ def run_stages(stages: tuple[Settings, ...], space: FitSpace, objective: Objecti
     x, done, loss = x0, 0, {}
     for settings in stages:
         objective.reset()
-        stage_objective = objective if settings.landmarks or not isinstance(objective, WithLandmarks) \
-            else objective.scan
+        stage_objective = _for_stage(objective, settings)
         if settings.optimizer == "gauss-newton":
             if not hasattr(stage_objective, "jacobian"):
                 raise StatfitError("the Gauss–Newton pca stage needs a least-squares objective (scan registration); "
@@ -71,3 +70,8 @@ def run_stages(stages: tuple[Settings, ...], space: FitSpace, objective: Objecti
                              first_iteration=done, on_snapshot=on_snapshot)
         x, done, loss = result.vertices, done + result.iterations, result.loss
     return PipelineResult(x, loss, done)
+
+
+def _for_stage(objective: Objective, settings: Settings) -> Objective:
+    """The objective a stage fits: without its landmark term when ``settings.landmarks`` is False."""
+    return objective.scan if isinstance(objective, WithLandmarks) and not settings.landmarks else objective

@@ -155,3 +155,9 @@ def test_every_command_refuses_bad_settings_the_same_way(command, option, tmp_pa
 def test_gauss_newton_is_for_the_coefficients_only():
     with pytest.raises(StatfitError, match="Gauss"):
         Settings("statistical", 10, 0.0, optimizer="gauss-newton")
+
+
+@pytest.mark.parametrize("lr", [-1.0, 0.0, float("nan"), float("inf")])
+def test_a_pipelines_bad_step_size_is_refused_naming_it(lr):
+    with pytest.raises(StatfitError, match="lr"):
+        resolve("default", lr=lr)
