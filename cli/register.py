@@ -9,9 +9,9 @@ from statfit.errors import StatfitError
 from statfit.io.files import existing_file
 from statfit.io.mesh import check_writable, load_scan, mesh_bytes, mesh_format
 from statfit.io.landmarks import read_landmarks
-from statfit.methods import resolve
 from statfit.device import resolve_device
-from statfit.register import LANDMARK_WEIGHT, register as fit_scan
+from statfit.methods import landmark_weight as method_landmark_weight, resolve
+from statfit.register import register as fit_scan
 from statfit.importers.cache import open_model
 from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, IterationsOption, JsonOption, KOption,
                                 LamOption, LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption,
@@ -43,10 +43,10 @@ def register(
                                    "or units), which --align auto then polishes on the scan (rigid pose and every mode; "
                                    "none keeps it, rigid/similarity refine it by ICP), and stay a fit term.",
                                    show_default=False),
-    landmark_weight: float = typer.Option(LANDMARK_WEIGHT, help="Weight of the landmark term against the scan's mean "
+    landmark_weight: float = typer.Option(None, help="Weight of the landmark term against the scan's mean "
                                           "squared distance (robust: beyond ~5% of the model's radius off its place, a "
-                                          "landmark pulls less the farther it is); 0: the start only.",
-                                          callback=within(0, 1e6)),
+                                          "landmark pulls less the farther it is); 0: the start only.  [default: the "
+                                          "method's: 10; pca 1]", callback=within(0, 1e6), show_default=False),
     clutter: str = ClutterOption,
     device: str = DeviceOption,
     threads: int = ThreadsOption,
@@ -78,6 +78,8 @@ def register(
     overrides = setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain)
     clutter_rules = clutter_choice(clutter)
     stages = resolve(method, preset, **overrides)
+    if landmark_weight is None:
+        landmark_weight = method_landmark_weight(method)
     torch_device = resolve_device(device)
     if len(scans) > 1:
         raise StatfitError(f"{len(scans)} scans given; register fits one — for many, `statfit batch register SCANS "

@@ -29,6 +29,9 @@ PAPER_ITERATIONS = {"register": 500, "render": 3000}
 # §9); this only bounds it.
 GAUSS_NEWTON_ITERATIONS = 200
 SPLAT_ITERATIONS = 400
+# The landmark term's weight (against the scan's mean squared distance) unless a method says
+# otherwise: docs/studies.md §12 (the default's landmarks at 0.39x the start-only error at 10).
+LANDMARK_WEIGHT = 10.0
 
 Builder = Callable[[Settings, FitSpace, torch.Tensor], tuple[Parametrization, torch.optim.Optimizer]]
 
@@ -37,7 +40,8 @@ Builder = Callable[[Settings, FitSpace, torch.Tensor], tuple[Parametrization, to
 class Method:
     """A fitting method: ``build`` makes its parametrisation and optimiser; ``paper`` is the
     paper's setting (None: not in the paper); ``tuned`` our setting per job (a job without one
-    does not offer the method); ``needs_model``: whether it uses the model's modes."""
+    does not offer the method); ``needs_model``: whether it uses the model's modes;
+    ``landmark_weight``: its landmark term's weight when registering with landmarks."""
 
     name: str
     build: Builder
@@ -45,6 +49,7 @@ class Method:
     paper: Settings | None = None
     needs_model: bool = True
     summary: str = ""
+    landmark_weight: float = LANDMARK_WEIGHT
 
 
 def filtered_method(make_filter: Callable[[Settings, FitSpace, torch.Tensor], Filter]) -> Builder:
@@ -154,7 +159,8 @@ for _method in (
            tuned={"register": Settings("pca", GAUSS_NEWTON_ITERATIONS, 0.0, optimizer="gauss-newton", noise=0.003),
                   "render": Settings("pca", 3000, 0.05),
                   "inpaint": Settings("pca", 300, 0.01),
-                  "splat": Settings("pca", SPLAT_ITERATIONS, 0.05)}),
+                  "splat": Settings("pca", SPLAT_ITERATIONS, 0.05)},
+           landmark_weight=1.0),   # §12: its span is all it can move; a heavier term bends it out of shape
     Method("regularized", _regularized, summary="free x, prior β/N ‖(I − UUᵀ)(x − x̄)‖²",
            paper=Settings("regularized", 500, 0.01, beta=10.0),
            tuned={"register": Settings("regularized", 1000, 0.1, beta=30.0),
@@ -175,6 +181,7 @@ class Pipeline:
 
     stages: tuple[Settings, ...]
     summary: str = ""
+    landmark_weight: float = LANDMARK_WEIGHT
 
 
 # register: the closed-form coefficients (Gauss–Newton with continuation) find the shape in the
@@ -182,7 +189,9 @@ class Pipeline:
 # scan does not show (docs/studies.md §15) — then 200 UniformAdam steps of the hybrid filter with
 # β = 1 (half of each step in the span, half smooth motion off it) bend the mesh to what the span
 # cannot make: lower error than the former 5,333 statistical steps on all nine study cases, in and
-# off the span, at a tenth of the time (docs/studies.md §9). render: the hybrid filter with mode
+# off the span, at a tenth of the time (docs/studies.md §9). Its step, 0.03, travels far enough in
+# 200 steps for landmarks to open a jaw the span cannot (§12: 0.39x the start-only landmark error,
+# where 0.006 reached 0.66x) for +0.6% in-span error. render: the hybrid filter with mode
 # gains (γ = 1), the lowest error over all vertices of everything tried (§5), in 450 iterations of a 5× larger step
 # instead of 3,000: β 30 first, then β 10, whose larger off-model gain (1/11 instead of 1/31) lets
 # the expression in — lower error on all four study cases in a quarter of the time (§11). splat: the
@@ -191,7 +200,7 @@ class Pipeline:
 PIPELINES: dict[str, dict[str, Pipeline]] = {
     "register": {"default": Pipeline((Settings("pca", GAUSS_NEWTON_ITERATIONS, 0.0, optimizer="gauss-newton",
                                                noise=0.003, landmarks=False),
-                                      Settings("hybrid", 200, 0.006, beta=1.0, lam=19.0)),
+                                      Settings("hybrid", 200, 0.03, beta=1.0, lam=19.0)),
                                      "the closed-form coefficients, then 200 hybrid steps (docs/studies.md §9)")},
     "render": {"default": Pipeline((Settings("hybrid", 150, 0.05, beta=30.0, lam=19.0, mode_gain=1.0),
                                     Settings("hybrid", 300, 0.05, beta=10.0, lam=19.0, mode_gain=1.0)),
@@ -238,6 +247,15 @@ def resolve(method: str, preset: str = "tuned", job: str = "register", **overrid
         check_int("iterations", total, 1, MAX_ITERATIONS)
         stages = _split_iterations(stages, total)
     return tuple(replace(s, **changes) for s in stages)
+
+
+def landmark_weight(method: str, job: str = "register") -> float:
+    """The landmark term's weight of ``method`` (a method or a pipeline of ``job``); for a name
+    neither offers, :data:`LANDMARK_WEIGHT`."""
+    load_plugins()
+    if method in PIPELINES.get(job, {}):
+        return PIPELINES[job][method].landmark_weight
+    return METHODS[method].landmark_weight if method in METHODS else LANDMARK_WEIGHT
 
 
 def _split_iterations(stages: tuple[Settings, ...], total: int) -> tuple[Settings, ...]:

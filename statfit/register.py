@@ -16,7 +16,7 @@ from statfit.fit import StageTimer
 from statfit.frame import Frame
 from statfit.global_align import CLUTTER_MATCHED, DISTINCT_DEGREES, estimate_pose, refine_pose
 from statfit.hair import MAX_HAIR_SHARE, hair_points
-from statfit.methods import resolve
+from statfit.methods import landmark_weight as method_landmark_weight, resolve
 from statfit.settings import FitSpace, Settings
 from statfit.model import StatModel, face_triangles, region_triangles
 from statfit.objectives.landmarks import LandmarkObjective, WithLandmarks
@@ -33,9 +33,6 @@ IMPLAUSIBLE_COORDINATE = 1e9
 # Median scan-to-template distance (in model RMS radii) above which the scan is "far" from the model.
 FAR_DISTANCE = 0.25
 ROBUST_ALIGNMENT_ROUNDS = 10
-# Weight of the landmark term against the scan's mean squared distance (docs/studies.md §12: with the
-# default pipeline, 1 holds the landmarks as well as 10 and the rest of the mesh nearer).
-LANDMARK_WEIGHT = 1.0
 
 
 def check_scan(points: np.ndarray, source: str = "scan") -> np.ndarray:
@@ -127,7 +124,7 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
              timer: StageTimer | None = None, stages: tuple[Settings, ...] | None = None,
              region: str | None = None, landmarks: np.ndarray | None = None,
              on_snapshot: Callable[[int, np.ndarray], None] | None = None, threads: int | None = None,
-             landmark_weight: float = LANDMARK_WEIGHT, clutter: bool | None = None, **overrides: Any) -> Fit:
+             landmark_weight: float | None = None, clutter: bool | None = None, **overrides: Any) -> Fit:
     """Fit ``model`` to the scan ``points`` (M, 3), or a :class:`statfit.scan.Scan` (e.g. drawn
     from a mesh scan by area), with ``method``.
 
@@ -140,7 +137,8 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
     the region's triangles enter the data term, while the filter and prior still move every vertex.
     ``landmarks`` (L, 3), the scan's points for the model's landmarks (NaN = missing), pre-align the
     scan by a similarity first (refined by ICP when ``align`` is rigid or similarity), then stay a
-    fit term of ``landmark_weight`` (0: the start only; :mod:`statfit.objectives.landmarks`).
+    fit term of ``landmark_weight`` (0: the start only; None: the method's,
+    :func:`statfit.methods.landmark_weight`; :mod:`statfit.objectives.landmarks`).
     ``clutter`` turns on the data term's rules for points off the template (normals, robust
     distance; :mod:`statfit.objectives.scan`) and, without a ``region``, leaves out the points a fit
     of the model's face alone finds to be hair (:mod:`statfit.hair`: hair passes every rule), or
@@ -160,6 +158,8 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
         raise StatfitError(f"trim must lie in [0, 1), got {trim}")
     if refresh_every < 1:
         raise StatfitError(f"refresh_every must be at least 1, got {refresh_every}")
+    if landmark_weight is None:
+        landmark_weight = method_landmark_weight(method)
     if not (np.isfinite(landmark_weight) and 0 <= landmark_weight <= 1e6):
         raise StatfitError(f"landmark_weight must be a finite number in [0, 1e6], got {landmark_weight}")
     stages = stages or resolve(method, preset, **overrides)

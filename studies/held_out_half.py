@@ -24,6 +24,7 @@ identity in span, expression outside) for every pipeline that is not a plain met
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 import json
 import multiprocessing
 import sys
@@ -68,6 +69,11 @@ def candidates() -> dict:
                 (gn(noise), Settings("statistical", 300, 0.01, beta=100.0)), {"landmark_weight": weight})
         tried[f"pca σ 0.003 → hybrid β 1 lr 0.006 200 it w {weight:g}"] = (
             (gn(0.003), Settings("hybrid", 200, 0.006, beta=1.0, lam=19.0)), {"landmark_weight": weight})
+    closed_form = replace(gn(0.003), landmarks=False)   # the default's first stage
+    for lr in (0.02, 0.03):   # a larger step for the hybrid stage (docs/studies.md §12)
+        for weight in (1.0, 3.0, 10.0):
+            tried[f"default's closed form → hybrid β 1 lr {lr} 200 it w {weight:g}"] = (
+                (closed_form, Settings("hybrid", 200, lr, beta=1.0, lam=19.0)), {"landmark_weight": weight})
     return tried
 
 

@@ -87,7 +87,8 @@ def test_the_landmark_term_holds_the_landmarks_where_the_start_alone_drifts(embe
     with the term the other landmarks end ≤ 0.5x as far from the truth as with the start only."""
     from conftest import run_cli
     from statfit.io.mesh import points_bytes
-    from statfit.register import LANDMARK_WEIGHT, register
+    from statfit.methods import LANDMARK_WEIGHT
+    from statfit.register import register
     from statfit.synth import sample_target, scan_from_view
 
     rng = np.random.default_rng(seed)
@@ -111,6 +112,38 @@ def test_the_landmark_term_holds_the_landmarks_where_the_start_alone_drifts(embe
     code, err = run_cli(["register", str(tmp_path / "scan.ply"), "--landmarks", str(tmp_path / "l.pts"),
                          "--landmark-weight", "10", "--iterations", "40", "-q", "--out", str(tmp_path / "fit.ply")])
     assert code == 0, err
+
+
+def test_each_method_weighs_its_landmarks_with_its_own_default(embedded_model, tmp_path):
+    """pca's term weighs 1 (its span is all it moves; docs/studies.md §12), the default pipeline's
+    10: ``landmark_weight=None`` gives exactly the fit with the method's weight, and the log
+    records the weight used."""
+    import json
+
+    from conftest import run_cli
+    from statfit.io.mesh import points_bytes
+    from statfit.methods import LANDMARK_WEIGHT, landmark_weight
+    from statfit.register import register
+    from statfit.synth import sample_target, scan_from_view
+
+    assert (landmark_weight("pca"), landmark_weight("default"), LANDMARK_WEIGHT) == (1.0, 10.0, 10.0)
+    rng = np.random.default_rng(5)
+    target = sample_target(embedded_model, rng, 1.0)
+    points = scan_from_view(target, embedded_model.faces, rng, 2000, 0.0)
+    landmarks = target[embedded_model.landmarks] + rng.normal(scale=0.02, size=(len(embedded_model.landmarks), 3))
+    fits = {w: register(embedded_model, points, "pca", landmarks=landmarks, landmark_weight=w, align="none").vertices
+            for w in (None, 1.0, 10.0)}
+    assert np.array_equal(fits[None], fits[1.0])
+    assert not np.allclose(fits[None], fits[10.0])
+    (tmp_path / "scan.ply").write_bytes(points_bytes(points))
+    np.savetxt(tmp_path / "l.txt", landmarks)
+    for method, weight in (("pca", 1.0), ("default", 10.0)):
+        log = tmp_path / f"{method}.jsonl"
+        code, err = run_cli(["register", str(tmp_path / "scan.ply"), "--method", method, "--landmarks",
+                             str(tmp_path / "l.txt"), "--iterations", "20", "-q", "--log", str(log),
+                             "--out", str(tmp_path / f"{method}.ply")])
+        assert code == 0, err
+        assert json.loads(log.read_text().splitlines()[0])["landmark_weight"] == weight
 
 
 @pytest.mark.parametrize("seed", [1, 3])
