@@ -24,11 +24,11 @@ identity in span, expression outside) for every pipeline that is not a plain met
 from __future__ import annotations
 
 import argparse
-from dataclasses import replace
 import json
 import multiprocessing
 import sys
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np

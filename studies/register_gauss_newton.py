@@ -65,8 +65,9 @@ def pipelines() -> dict:
     }
 
 
-OFF_SPAN = ("default (shipped)", "GN → hybrid β 1 lr 0.006 200 it (default until 2026-11-25)", "former default (statistical 4,000 + 1,333)", "GN σ 0.01, no continuation", "GN σ 0.3 … 0.003, 5 levels (pca)",
-            "GN 5 levels → stat γ 0.5 lr 0.01 300 it")
+OFF_SPAN = ("default (shipped)", "GN → hybrid β 1 lr 0.006 200 it (default until 2026-11-25)",
+            "former default (statistical 4,000 + 1,333)", "GN σ 0.01, no continuation",
+            "GN σ 0.3 … 0.003, 5 levels (pca)", "GN 5 levels → stat γ 0.5 lr 0.01 300 it")
 
 
 def measure(stages, k: int | None = None) -> dict:
