@@ -35,6 +35,21 @@ def former_default_stages() -> tuple:
 
     return (Settings("statistical", 4000, 0.03, beta=1000.0, mode_gain=1.0),
             Settings("statistical", 1333, 0.01, beta=1000.0, mode_gain=0.5))
+
+
+def register_named(model, points, name: str, iterations: int | None = None, **options):
+    """``statfit.register.register`` with a shipped method or pipeline ``name``, or
+    :data:`FORMER_DEFAULT` (its stages as they were; ``iterations`` then replaces each stage's)."""
+    from dataclasses import replace
+
+    from statfit.register import register
+
+    if name != FORMER_DEFAULT:
+        return register(model, points, name, iterations=iterations, **options)
+    stages = former_default_stages()
+    if iterations is not None:
+        stages = tuple(replace(stage, iterations=iterations) for stage in stages)
+    return register(model, points, "default", stages=stages, **options)
 NORMAL_CASES = {
     "jaw-open": (3, "jawOpen", 0.8, 20.0, 0.0),
     "smile": (11, "mouthSmile_R", 1.0, 0.0, 0.0),

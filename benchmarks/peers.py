@@ -288,7 +288,7 @@ def run(quick: bool, device: str = "cpu", image_dir: Path | None = None) -> Sect
 
 
 def section(data: dict) -> Section:
-    """The tables of :func:`measure`'s results (also from a saved results file)."""
+    """The tables of :func:`measure_all`'s results (also from a saved results file)."""
     quick, device, template, results = data["quick"], data["device"], data["template"], data["results"]
     cases = list(template)
 

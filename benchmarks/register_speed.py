@@ -16,9 +16,8 @@ from __future__ import annotations
 import subprocess
 import sys
 import time
-from dataclasses import replace
 
-from cases import FORMER_DEFAULT, HELD_OUT_SCAN_CASES, STUDY_SCAN_CASES, former_default_stages, scan_case
+from cases import FORMER_DEFAULT, HELD_OUT_SCAN_CASES, STUDY_SCAN_CASES, register_named, scan_case
 from common import Section, in_child, markdown_table
 
 METHODS = ("default", FORMER_DEFAULT, "pca")
@@ -34,19 +33,14 @@ def fit_once(method: str, threads: int | None, iterations: int | None, case: str
     import numpy as np
 
     from cases import ict_model
-    from statfit.register import register
     from statfit.threads import choose_threads, flush_denormals_everywhere
 
     flush_denormals_everywhere()
     data = scan_case(case)
     model = ict_model()
-    stages = former_default_stages() if method == FORMER_DEFAULT else None   # its iterations as they were
-    shipped = "default" if stages else method
-    warm = tuple(replace(stage, iterations=5) for stage in stages) if stages else None
-    register(model, data.points, shipped, iterations=None if stages else 5, stages=warm, threads=threads, align=align)
+    register_named(model, data.points, method, iterations=5, threads=threads, align=align)
     started = time.perf_counter()
-    result = register(model, data.points, shipped, iterations=None if stages else iterations, stages=stages,
-                      threads=threads, align=align)
+    result = register_named(model, data.points, method, iterations=iterations, threads=threads, align=align)
     seconds = time.perf_counter() - started
     return {"seconds": seconds, "iterations": result.iterations,
             "threads": choose_threads(model.basis.size, threads),

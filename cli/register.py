@@ -10,7 +10,7 @@ from statfit.io.files import existing_file
 from statfit.io.mesh import check_writable, load_scan, mesh_bytes, mesh_format
 from statfit.io.landmarks import read_landmarks
 from statfit.device import resolve_device
-from statfit.methods import landmark_weight as method_landmark_weight, resolve
+from statfit.methods import LANDMARK_WEIGHT, landmark_weight as method_landmark_weight, resolve
 from statfit.register import register as fit_scan
 from statfit.importers.cache import open_model
 from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, IterationsOption, JsonOption, KOption,
@@ -46,7 +46,8 @@ def register(
     landmark_weight: float = typer.Option(None, help="Weight of the landmark term against the scan's mean "
                                           "squared distance (robust: beyond ~5% of the model's radius off its place, a "
                                           "landmark pulls less the farther it is); 0: the start only.  [default: the "
-                                          "method's: 10; pca 1]", callback=within(0, 1e6), show_default=False),
+                                          f"method's: {LANDMARK_WEIGHT:g}; pca {method_landmark_weight('pca'):g}]",
+                                          callback=within(0, 1e6), show_default=False),
     clutter: str = ClutterOption,
     device: str = DeviceOption,
     threads: int = ThreadsOption,

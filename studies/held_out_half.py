@@ -36,6 +36,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from cases import FORMER_DEFAULT  # noqa: E402
+
 RESULTS = ROOT / "studies" / "results" / "held_out_half.json"
 # seed, expression, weight: seeds apart from the registration study's, expressions from its list
 TARGETS = {"A": (201, "jawOpen", 0.7), "B": (202, "mouthSmile_R", 1.0), "C": (203, "browInnerUp_L", 0.9),
@@ -45,7 +47,7 @@ INNER = slice(17, 68)
 NOISE_CM = 0.1
 BUMPS, BUMP_WIDTH, BUMP_CM = 6, 0.3, 0.2   # width in RMS radii
 SCAN_POINTS = 6000
-METHODS = ("mean", "default", "former default (statistical 4,000 + 1,333)", "statistical", "hybrid", "laplacian", "pca", "regularized", "none")
+METHODS = ("mean", "default", FORMER_DEFAULT, "statistical", "hybrid", "laplacian", "pca", "regularized", "none")
 
 
 def candidates() -> dict:
@@ -55,7 +57,7 @@ def candidates() -> dict:
     def gn(noise: float, levels: int = 5) -> Settings:
         return Settings("pca", 200, 0.0, optimizer="gauss-newton", noise=noise, levels=levels)
 
-    from cases import FORMER_DEFAULT, former_default_stages
+    from cases import former_default_stages
 
     tried = {FORMER_DEFAULT: (former_default_stages(), {})}
     for weight in (0.0, 1.0, 10.0):

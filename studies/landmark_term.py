@@ -22,9 +22,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from cases import FORMER_DEFAULT  # noqa: E402
+
 CASES = ("jaw-open", "smile", "brow-up", "cheek-puff")
 WEIGHTS = (0.0, 0.1, 1.0, 10.0, 100.0)
-METHODS = ("default", "former default (statistical 4,000 + 1,333)", "pca")
+METHODS = ("default", FORMER_DEFAULT, "pca")
 MODES = 30
 INNER = slice(17, 68)
 NOSE_TIP = 30 - 17  # Multi-PIE 30, among the inner 51
@@ -46,9 +48,8 @@ def fit(case: str, method: str, weight: float) -> dict:
     import torch
 
     torch.set_num_threads(1)
-    from cases import ICT_MODEL, ict_model, scan_case
+    from cases import ICT_MODEL, ict_model, register_named, scan_case
     from statfit.model import with_landmarks
-    from statfit.register import register
     from statfit.threads import flush_denormals_everywhere
 
     flush_denormals_everywhere()
@@ -62,11 +63,7 @@ def fit(case: str, method: str, weight: float) -> dict:
     landmarks = truth[indices] + rng.normal(scale=NOISE_MM, size=(len(indices), 3))
     direction = rng.normal(size=3)
     landmarks[NOSE_TIP] += MISPLACED_MM * direction / np.linalg.norm(direction)
-    from cases import FORMER_DEFAULT, former_default_stages
-
-    stages = former_default_stages() if method == FORMER_DEFAULT else None
-    result = register(model, move(data.points), "default" if stages else method, stages=stages, landmarks=landmarks,
-                      landmark_weight=weight, threads=1)
+    result = register_named(model, move(data.points), method, landmarks=landmarks, landmark_weight=weight, threads=1)
     return {"case": case, "method": method, "weight": weight, "seconds": result.seconds,
             "landmark_mm": float(np.linalg.norm(result.vertices[indices] - truth[indices], axis=1).mean()),
             "all_mm": float(np.linalg.norm(result.vertices - truth, axis=1).mean())}

@@ -23,9 +23,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from cases import HELD_OUT_SCAN_CASES, STUDY_SCAN_CASES, ict_model, scan_case  # noqa: E402
+from cases import FORMER_DEFAULT, HELD_OUT_SCAN_CASES, STUDY_SCAN_CASES, ict_model, scan_case  # noqa: E402
 
 RESULTS = ROOT / "studies" / "results" / "register_gauss_newton.json"
+STEP_0006 = "GN → hybrid β 1 lr 0.006 200 it (default until 2026-11-25)"   # before its step became 0.03 (§12)
 
 
 def pipelines() -> dict:
@@ -38,7 +39,7 @@ def pipelines() -> dict:
     def stat(iterations: int, lr: float, beta: float, gain: float) -> Settings:
         return Settings("statistical", iterations, lr, beta=beta, mode_gain=gain)
 
-    from cases import FORMER_DEFAULT, former_default_stages
+    from cases import former_default_stages
 
     return {
         "default (shipped)": PIPELINES["register"]["default"].stages,
@@ -58,15 +59,14 @@ def pipelines() -> dict:
         "GN 5 levels → laplacian λ 19 lr 0.003 600 it": (gn(0.003), Settings("laplacian", 600, 0.003, lam=19.0)),
         "GN 5 levels → hybrid β 30 lr 0.003 300 it": (gn(0.003), Settings("hybrid", 300, 0.003, beta=30.0, lam=19.0)),
         "GN 5 levels → hybrid β 1 lr 0.003 600 it": (gn(0.003), Settings("hybrid", 600, 0.003, beta=1.0, lam=19.0)),
-        "GN → hybrid β 1 lr 0.006 200 it (default until 2026-11-25)": (
+        STEP_0006: (
             PIPELINES["register"]["default"].stages[0], Settings("hybrid", 200, 0.006, beta=1.0, lam=19.0)),
         "GN 5 levels → hybrid β 1 lr 0.006 300 it": (gn(0.003), Settings("hybrid", 300, 0.006, beta=1.0, lam=19.0)),
         "stat γ 1 lr 0.1 600 it (from the mean)": (stat(600, 0.1, 1000.0, 1.0),),
     }
 
 
-OFF_SPAN = ("default (shipped)", "GN → hybrid β 1 lr 0.006 200 it (default until 2026-11-25)",
-            "former default (statistical 4,000 + 1,333)", "GN σ 0.01, no continuation",
+OFF_SPAN = ("default (shipped)", STEP_0006, FORMER_DEFAULT, "GN σ 0.01, no continuation",
             "GN σ 0.3 … 0.003, 5 levels (pca)", "GN 5 levels → stat γ 0.5 lr 0.01 300 it")
 
 
