@@ -2,7 +2,11 @@
 
 normal: mean over the pixels covered by both the target and the rendering of ``‖n − n̂‖₁``
 (sum of absolute component differences, camera space); the rendered normals are interpolated
-from the vertex normals of the current mesh, so the term is differentiable through them.
+from the vertex normals of the current mesh and antialiased at silhouette edges, so the term is
+differentiable through them and through the position of every occluding outline — an arm's over
+the torso as well as the body's against the background (as nvdiffrast antialiases a shaded
+image; plain rasterisation gives an edge inside the mask no gradient, so a normal map could only
+bend a misplaced limb, never move it: docs/studies.md §13).
 silhouette: ``Σ (m − m̂)² / |target|`` over all pixels, where ``m`` is the rendered coverage
 antialiased at silhouette edges (its only gradients), ``m̂`` the target mask.
 The total is ``normal + silhouette_weight · silhouette``. Visibility is recomputed every call.
@@ -47,8 +51,10 @@ class NormalMapObjective:
 
     def __call__(self, vertices: torch.Tensor) -> dict[str, torch.Tensor]:
         fragments = rasterize(vertices, self.faces, self.camera)
+        crossings = silhouette_crossings(fragments, self.faces, self.adjacency)
         # The normal term is evaluated on the covered pixels only (C, M), never on the whole image.
         normals = fragment_normals(vertices, self.faces, fragments, self.camera)                 # (3, M)
+        normals = crossings.blend_covered(normals.T, fragments.pixel).T
         target = self._normals_by_pixel.index_select(1, fragments.pixel)
         both = self._mask_by_pixel.index_select(0, fragments.pixel)
         if self.region_faces is not None:
@@ -56,7 +62,6 @@ class NormalMapObjective:
         normal = ((normals - target).abs().sum(dim=0) * both).sum() / both.sum().clamp_min(1.0)
         terms = {"normal": normal}
         if self.silhouette_weight:
-            coverage = fragments.coverage(vertices.dtype)
-            mask = silhouette_crossings(fragments, self.faces, self.adjacency).blend(coverage)[..., 0]
+            mask = crossings.blend(fragments.coverage(vertices.dtype))[..., 0]
             terms["silhouette"] = self.silhouette_weight * (mask - self.mask).square().sum() / self.count
         return terms

@@ -90,6 +90,25 @@ class EdgeCrossings:
         return flat.view(height, width, channels)
 
 
+    def blend_covered(self, values: torch.Tensor, pixel: torch.Tensor) -> torch.Tensor:
+        """Antialias an image given at its covered pixels only: ``values`` (M, C) at the flat
+        pixel indices ``pixel`` (M,) ascending (``Fragments.pixel``), the background 0 → the
+        antialiased values (M, C) at the same pixels; the same as :meth:`blend` there, without
+        an image-sized tensor. Differentiable w.r.t. ``values`` and the weights."""
+        count = len(pixel)
+
+        def slot(flat: torch.Tensor) -> torch.Tensor:      # position in ``pixel``, or count: background
+            at = torch.searchsorted(pixel, flat).clamp_max(max(count - 1, 0))
+            return torch.where(pixel.index_select(0, at) == flat, at, count) if count else torch.zeros_like(flat)
+
+        target, source = slot(self.target), slot(self.source)
+        onto = target < count                                # a blended background pixel is not returned
+        target, source, weight = target[onto], source[onto], self.weight[onto]
+        padded = torch.cat([values, values.new_zeros(1, values.shape[1])])
+        change = weight[:, None] * (padded.index_select(0, source) - padded.index_select(0, target))
+        return values.index_add(0, target, change)
+
+
 class _Blend(torch.autograd.Function):
     """out = color, with out[target] += weight · (color[source] − color[target]) (K pixels).
 
