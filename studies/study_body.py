@@ -16,10 +16,13 @@ side: RMS distance of its vertices to the model's span (the ground truth's own i
 it: held-out bodies are not in the span either) and the mean angle between fitted and true normals
 of the unseen triangles.
 
-Results are appended to ``studies/results/study_body.json`` after every fit (a rerun resumes);
-``--report`` prints the Markdown tables of docs/studies.md. From the repository root:
+Results are appended to ``studies/results/study_body.json`` after every fit (a rerun resumes;
+``study_body_plain_normals.json`` holds the fits before the normal term was antialiased);
+``--report`` prints the Markdown tables of docs/studies.md; ``--trace SEED,YAW`` follows one fit's
+error per region. From the repository root:
 
     PYTHONPATH=. python studies/study_body.py [--size 384] [--methods a,b] [--workers 2] [--report]
+    PYTHONPATH=. python studies/study_body.py --trace 1,-60 --methods default
 """
 from __future__ import annotations
 
@@ -151,6 +154,39 @@ def run_case(task: tuple[int, float, float, str, int], iterations: int | None = 
     return row
 
 
+def trace(seed: int, yaw: float, method: str = "default", size: int = 384, every: int = 50) -> None:
+    """Print the aligned error (mm) over all, seen and unseen vertices and per region every
+    ``every`` iterations of one fit (iteration 0: after the rigid alignment, which also fits the
+    model's coefficients): where along the fit a view's error is made."""
+    import torch
+
+    torch.set_num_threads(2)
+    from statfit.align import umeyama
+    from statfit.inverse_render import reconstruct
+    from statfit.metrics import visible_vertices
+    from statfit.normal_map import NormalMap
+    from statfit.synth import camera_for_view, render_target
+
+    model = body_model()
+    gt = held_out_body(seed)
+    camera = camera_for_view(gt, yaw, VIEWS[0][1], size)
+    normals, mask = render_target(gt, model.faces, camera)
+    seen = visible_vertices(gt, model.faces, camera)
+    regions = {name: model.regions[name] for name in ("head", "torso", "arms", "legs") if name in model.regions}
+
+    def report_at(iteration: int, vertices: np.ndarray) -> None:
+        if iteration % every:
+            return
+        error = np.linalg.norm(umeyama(vertices, gt, with_scale=True).apply(vertices) - gt, axis=1) * 1000
+        parts = " ".join(f"{name} {error[where].mean():.1f}" for name, where in regions.items())
+        print(f"iteration {iteration:5d}: all {error.mean():.1f} seen {error[seen].mean():.1f} "
+              f"unseen {error[~seen].mean():.1f} | {parts}", flush=True)
+
+    fit = reconstruct(model, NormalMap(normals, mask), camera, method, threads=2, on_snapshot=report_at)
+    error = np.linalg.norm(umeyama(fit.vertices, gt, with_scale=True).apply(fit.vertices) - gt, axis=1) * 1000
+    print(f"final: all {error.mean():.1f} mm after {fit.iterations} iterations")
+
+
 def done_rows() -> list[dict]:
     return [json.loads(line) for line in RESULTS.read_text().splitlines()] if RESULTS.exists() else []
 
@@ -202,9 +238,14 @@ def main() -> None:
     parser.add_argument("--seeds", default=",".join(map(str, SEEDS)))
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--report", action="store_true")
+    parser.add_argument("--trace", metavar="SEED,YAW", help="trace one fit of --methods' first method instead")
     args = parser.parse_args()
     if args.report:
         print(report(done_rows()))
+        return
+    if args.trace:
+        seed, yaw = args.trace.split(",")
+        trace(int(seed), float(yaw), args.methods.split(",")[0], args.size)
         return
     body_model()  # build the cache once, before the workers
     done = {(r["seed"], r["yaw"], r["method"], r["size"]) for r in done_rows()}

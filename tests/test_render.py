@@ -12,7 +12,7 @@ import trimesh
 from conftest import ICT_DIR
 from statfit.errors import StatfitError
 from statfit.render import (Camera, EdgeCrossings, MeshAdjacency, interpolate, normal_image, rasterize, render_normals,
-                            vertex_normals)
+                            silhouette_crossings, vertex_normals)
 
 ICT_PATH = ICT_DIR / "ict_face_identity.npz"
 
@@ -295,6 +295,32 @@ def test_blend_gradients():
     color = torch.rand(3, 4, 2, dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(lambda c, w: EdgeCrossings(crossings.target, crossings.source, w).blend(c),
                                     (color, crossings.weight))
+
+
+def test_blending_the_covered_pixels_only_equals_blending_the_image(head_torch):
+    """EdgeCrossings.blend_covered (values at the covered pixels, background 0) against blend on
+    the whole image, at those pixels: values and gradients (the ICT head from the side, where the
+    nose hides the cheek: outlines inside the mask and against the background); and no covered pixel."""
+    vertices, faces, adjacency = head_torch
+    camera = frontal((0.0, -1.0), 30.0, 48, distance=45.0)
+    turned = vertices @ torch.as_tensor(trimesh.transformations.rotation_matrix(1.0, [0, 1, 0])[:3, :3]).T
+    fragments = rasterize(turned, faces, camera)
+    crossings = silhouette_crossings(fragments, faces, adjacency)
+    covered_target = torch.isin(crossings.target, fragments.pixel)
+    covered_source = torch.isin(crossings.source, fragments.pixel)
+    assert (covered_target & covered_source).sum() > 10      # outlines inside the mask
+    assert (covered_target & ~covered_source).sum() > 10     # ... and against the background
+    values = torch.rand(len(fragments.pixel), 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    values.requires_grad_()
+    image = torch.zeros(48 * 48, 3, dtype=torch.float64).index_copy(0, fragments.pixel, values)
+    whole = crossings.blend(image.view(48, 48, 3)).view(-1, 3).index_select(0, fragments.pixel)
+    covered = crossings.blend_covered(values, fragments.pixel)
+    torch.testing.assert_close(covered, whole)
+    weights = torch.randn_like(covered)
+    torch.testing.assert_close(torch.autograd.grad((covered * weights).sum(), values)[0],
+                               torch.autograd.grad((whole * weights).sum(), values)[0])
+    empty = crossings.blend_covered(values[:0], fragments.pixel[:0])
+    assert empty.shape == (0, 3)
 
 
 # --- gradients against finite differences -----------------------------------------------------
