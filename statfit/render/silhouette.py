@@ -89,7 +89,6 @@ class EdgeCrossings:
         flat = _Blend.apply(color.reshape(height * width, channels), self.target, self.source, self.weight)
         return flat.view(height, width, channels)
 
-
     def blend_covered(self, values: torch.Tensor, pixel: torch.Tensor) -> torch.Tensor:
         """Antialias an image given at its covered pixels only: ``values`` (M, C) at the flat
         pixel indices ``pixel`` (M,) ascending (``Fragments.pixel``), the background 0 → the
