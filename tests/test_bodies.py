@@ -144,8 +144,9 @@ def _fit_unseen_normals(method: str, size: int, iterations: int) -> float:
 def test_the_statistical_filter_keeps_the_unseen_side_plausible(tmp_path, monkeypatch):
     """The paper's body claim, on a body the model never saw: the Laplacian filter fits the visible
     side and bends the unseen one; the statistical filter keeps it close to a body's shape (mean
-    normal angle on the unseen side; study: 8.8° vs 19.9° over 12 fits at 384² and 3000 iterations; at
-    the 160² and 1000 iterations used here to keep the suite short, 10.2° vs 16.7°)."""
+    normal angle on the unseen side; study: 8.5° vs 18.2° over 12 fits at 384² and 3000 iterations; at
+    the 160² and 1000 iterations used here to keep the suite short, 10.2° vs 16.7° before the normal
+    term was antialiased)."""
     from conftest import run_two_at_a_time
 
     monkeypatch.setenv("STATFIT_BODY_MODEL", str(tmp_path / "body.npz"))
