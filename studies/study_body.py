@@ -174,17 +174,19 @@ def trace(seed: int, yaw: float, method: str = "default", size: int = 384, every
     seen = visible_vertices(gt, model.faces, camera)
     regions = {name: model.regions[name] for name in ("head", "torso", "arms", "legs") if name in model.regions}
 
+    def aligned_error(vertices: np.ndarray) -> np.ndarray:       # (N,) mm after the similarity to the truth
+        return np.linalg.norm(umeyama(vertices, gt, with_scale=True).apply(vertices) - gt, axis=1) * 1000
+
     def report_at(iteration: int, vertices: np.ndarray) -> None:
         if iteration % every:
             return
-        error = np.linalg.norm(umeyama(vertices, gt, with_scale=True).apply(vertices) - gt, axis=1) * 1000
+        error = aligned_error(vertices)
         parts = " ".join(f"{name} {error[where].mean():.1f}" for name, where in regions.items())
         print(f"iteration {iteration:5d}: all {error.mean():.1f} seen {error[seen].mean():.1f} "
               f"unseen {error[~seen].mean():.1f} | {parts}", flush=True)
 
     fit = reconstruct(model, NormalMap(normals, mask), camera, method, threads=2, on_snapshot=report_at)
-    error = np.linalg.norm(umeyama(fit.vertices, gt, with_scale=True).apply(fit.vertices) - gt, axis=1) * 1000
-    print(f"final: all {error.mean():.1f} mm after {fit.iterations} iterations")
+    print(f"final: all {aligned_error(fit.vertices).mean():.1f} mm after {fit.iterations} iterations")
 
 
 def done_rows() -> list[dict]:
