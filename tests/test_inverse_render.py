@@ -100,7 +100,8 @@ def _plate(centre: np.ndarray, size: float, tilt_deg: float, cells: int) -> tupl
     grid = np.stack(np.meshgrid(ticks, ticks, indexing="xy"), axis=-1).reshape(-1, 2)
     vertices = Rotation.from_euler("y", tilt_deg, degrees=True).apply(np.c_[grid, np.zeros(len(grid))]) + centre
     corner = (np.arange(cells)[:, None] * (cells + 1) + np.arange(cells)[None]).reshape(-1)
-    faces = np.concatenate([np.c_[corner, corner + 1, corner + cells + 2], np.c_[corner, corner + cells + 2, corner + cells + 1]])
+    faces = np.concatenate([np.c_[corner, corner + 1, corner + cells + 2],
+                            np.c_[corner, corner + cells + 2, corner + cells + 1]])
     return vertices, faces
 
 
