@@ -50,6 +50,8 @@ def register_named(model, points, name: str, iterations: int | None = None, **op
     if iterations is not None:
         stages = tuple(replace(stage, iterations=iterations) for stage in stages)
     return register(model, points, "default", stages=stages, **options)
+
+
 NORMAL_CASES = {
     "jaw-open": (3, "jawOpen", 0.8, 20.0, 0.0),
     "smile": (11, "mouthSmile_R", 1.0, 0.0, 0.0),

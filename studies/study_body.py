@@ -92,6 +92,17 @@ def held_out_body(seed: int) -> np.ndarray:
     return space.shapes(space.weights(np.random.default_rng(seed), 1, "held_out"))[0]
 
 
+def view(seed: int, yaw: float, pitch: float, size: int):
+    """(model, held-out body (N, 3), camera, its NormalMap) of one study case."""
+    from statfit.normal_map import NormalMap
+    from statfit.synth import camera_for_view, render_target
+
+    model = body_model()
+    gt = held_out_body(seed)
+    camera = camera_for_view(gt, yaw, pitch, size)
+    return model, gt, camera, NormalMap(*render_target(gt, model.faces, camera))
+
+
 def scale_about(fit: np.ndarray, gt: np.ndarray, centre: np.ndarray) -> np.ndarray:
     """``fit`` scaled about ``centre`` by the least-squares factor that brings it to ``gt``."""
     a, b = fit - centre, gt - centre
@@ -125,18 +136,13 @@ def run_case(task: tuple[int, float, float, str, int], iterations: int | None = 
     from statfit.align import umeyama
     from statfit.inverse_render import reconstruct
     from statfit.metrics import visible_vertices
-    from statfit.normal_map import NormalMap
-    from statfit.synth import camera_for_view, render_target
 
-    model = body_model()
-    gt = held_out_body(seed)
-    camera = camera_for_view(gt, yaw, pitch, size)
-    normals, mask = render_target(gt, model.faces, camera)
+    model, gt, camera, normal_map = view(seed, yaw, pitch, size)
     started = time.perf_counter()
     overrides = {} if iterations is None else {"iterations": iterations}
     if method.startswith("candidate:"):
         overrides = {"stages": candidate_stages(method.split(":", 1)[1])}
-    fit = reconstruct(model, NormalMap(normals, mask), camera, method, threads=1, **overrides).vertices
+    fit = reconstruct(model, normal_map, camera, method, threads=1, **overrides).vertices
     seconds = time.perf_counter() - started
     seen = visible_vertices(gt, model.faces, camera)
     centre = -camera.rotation.numpy().T @ camera.world_to_camera[:3, 3].numpy()
@@ -164,13 +170,8 @@ def trace(seed: int, yaw: float, method: str = "default", size: int = 384, every
     from statfit.align import umeyama
     from statfit.inverse_render import reconstruct
     from statfit.metrics import visible_vertices
-    from statfit.normal_map import NormalMap
-    from statfit.synth import camera_for_view, render_target
 
-    model = body_model()
-    gt = held_out_body(seed)
-    camera = camera_for_view(gt, yaw, VIEWS[0][1], size)
-    normals, mask = render_target(gt, model.faces, camera)
+    model, gt, camera, normal_map = view(seed, yaw, VIEWS[0][1], size)
     seen = visible_vertices(gt, model.faces, camera)
     regions = {name: model.regions[name] for name in ("head", "torso", "arms", "legs") if name in model.regions}
 
@@ -185,7 +186,7 @@ def trace(seed: int, yaw: float, method: str = "default", size: int = 384, every
         print(f"iteration {iteration:5d}: all {error.mean():.1f} seen {error[seen].mean():.1f} "
               f"unseen {error[~seen].mean():.1f} | {parts}", flush=True)
 
-    fit = reconstruct(model, NormalMap(normals, mask), camera, method, threads=2, on_snapshot=report_at)
+    fit = reconstruct(model, normal_map, camera, method, threads=2, on_snapshot=report_at)
     print(f"final: all {aligned_error(fit.vertices).mean():.1f} mm after {fit.iterations} iterations")
 
 

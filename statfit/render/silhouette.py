@@ -95,10 +95,12 @@ class EdgeCrossings:
         antialiased values (M, C) at the same pixels; the same as :meth:`blend` there, without
         an image-sized tensor. Differentiable w.r.t. ``values`` and the weights."""
         count = len(pixel)
+        if count == 0:
+            return values
 
         def slot(flat: torch.Tensor) -> torch.Tensor:      # position in ``pixel``, or count: background
-            at = torch.searchsorted(pixel, flat).clamp_max(max(count - 1, 0))
-            return torch.where(pixel.index_select(0, at) == flat, at, count) if count else torch.zeros_like(flat)
+            at = torch.searchsorted(pixel, flat).clamp_max(count - 1)
+            return torch.where(pixel.index_select(0, at) == flat, at, count)
 
         target, source = slot(self.target), slot(self.source)
         onto = target < count                                # a blended background pixel is not returned
