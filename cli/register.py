@@ -109,7 +109,7 @@ def register(
                           region=region, landmarks=scan_landmarks, landmark_weight=landmark_weight, threads=threads,
                           clutter=clutter_rules)
     summary = {"input": scan, "output": target, "method": method, "iterations": result.iterations,
-               "final_loss": result.loss, "seconds": result.seconds,
+               "final_loss": result.loss, "seconds": result.seconds, "threads": result.threads,
                "stage_seconds": result.stage_seconds, "model_to_scan": result.transform.as_matrix().tolist(),
                "pose": result.pose}
     finish(run, summary, {target: mesh_bytes(result.vertices, model.faces, mesh_format(target))}, json_out)

@@ -99,8 +99,8 @@ def render(
                              device=str(torch_device), silhouette_weight=silhouette_weight, seed=seed,
                              on_record=run.on_record, region=region, threads=threads)
     summary = {"input": str(normal_map_path), "output": str(out), "method": method, "iterations": result.iterations,
-               "final_loss": result.loss, "seconds": result.seconds, "stage_seconds": result.stage_seconds,
-               "model_to_world": result.transform.as_matrix().tolist()}
+               "final_loss": result.loss, "seconds": result.seconds, "threads": result.threads,
+               "stage_seconds": result.stage_seconds, "model_to_world": result.transform.as_matrix().tolist()}
     outputs = {out: mesh_bytes(result.vertices, model.faces, mesh_format(out))}
     if preview is not None:
         from statfit.preview import preview_png  # matplotlib is imported only when a preview is asked for

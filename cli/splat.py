@@ -92,7 +92,7 @@ def splat(
                            threads=threads)
     vertices = result.fit.vertices
     summary = {"input": str(folder), "output": str(out), "method": method, "iterations": result.fit.iterations,
-               "final_loss": result.fit.loss, "seconds": result.fit.seconds,
+               "final_loss": result.fit.loss, "seconds": result.fit.seconds, "threads": result.fit.threads,
                "stage_seconds": result.fit.stage_seconds, "splats": len(result.splats),
                "held_out": result.mean_scores("test"), "train": result.mean_scores("train"),
                "views": result.scores}

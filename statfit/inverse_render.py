@@ -168,7 +168,8 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
     stages = stages or render_stages(method, preset, region, **overrides)
     torch_device = resolve_device(device)
     work = model.basis.size + RENDER_FLOATS_PER_PIXEL * normal_map.mask.size
-    with intra_op_threads(choose_threads(work, threads)):
+    threads = choose_threads(work, threads)
+    with intra_op_threads(threads):
         torch.manual_seed(seed)
         started = time.perf_counter()
         start_shape = model.template if init is None else _checked_init(init, model)
@@ -204,7 +205,7 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
         to_unit = Similarity(1.0 / frame.scale, np.eye(3), -frame.center / frame.scale)
         from_unit = Similarity(frame.scale, np.eye(3), frame.center)
         return Fit(vertices, compose(from_unit, compose(pose, to_unit)), stages, result.loss,
-                              time.perf_counter() - started, dict(timer.seconds), result.iterations)
+                              time.perf_counter() - started, dict(timer.seconds), result.iterations, threads=threads)
 
 
 def downsampled(normals: torch.Tensor, mask: torch.Tensor, camera: Camera, size: int

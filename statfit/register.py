@@ -164,7 +164,8 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
         raise StatfitError(f"landmark_weight must be a finite number in [0, 1e6], got {landmark_weight}")
     stages = stages or resolve(method, preset, **overrides)
     torch_device = resolve_device(device)
-    with intra_op_threads(choose_threads(model.basis.size, threads)):
+    threads = choose_threads(model.basis.size, threads)
+    with intra_op_threads(threads):
         torch.manual_seed(seed)
         started = time.perf_counter()
         region_faces = None if region is None else torch.as_tensor(region_triangles(model, region),
@@ -215,4 +216,4 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
         result = run_stages(stages, space, objective, space.mean.clone(), on_record=on_record,
                             on_snapshot=snapshot, timer=timer)
         return Fit(to_scan_frame(result.vertices), transform, stages, result.loss,
-                            time.perf_counter() - started, dict(timer.seconds), result.iterations, pose)
+                            time.perf_counter() - started, dict(timer.seconds), result.iterations, pose, threads)

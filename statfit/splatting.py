@@ -125,7 +125,8 @@ def fit_views(model: StatModel, views: list[View], method: str = "default", *, p
     check_views_see(model.template, views)
     torch_device = resolve_device(device)
     work = model.basis.size + SPLAT_FLOATS_PER_PIXEL * train[0].image.shape[0] * train[0].image.shape[1]
-    with intra_op_threads(choose_threads(work, threads)):
+    threads = choose_threads(work, threads)
+    with intra_op_threads(threads):
         torch.manual_seed(seed)
         started = time.perf_counter()
         frame = Frame.of(model.template)
@@ -148,7 +149,7 @@ def fit_views(model: StatModel, views: list[View], method: str = "default", *, p
         result = run_stages(stages, space, objective, x0, on_record=on_record, on_snapshot=snapshot, timer=timer)
         scores = score_views(splats, result.vertices, converted, views)
         fit = Fit(to_world(result.vertices), Similarity(), stages, result.loss, time.perf_counter() - started,
-                  dict(timer.seconds), result.iterations)
+                  dict(timer.seconds), result.iterations, threads=threads)
         return SplatFit(fit, splats, scores)
 
 

@@ -25,7 +25,8 @@ class Fit:
     """A job's result: fitted vertices (N, 3) in the input's frame and units; ``transform`` maps the
     model's frame onto it (the pre-alignment: scan for register, camera world for render); the
     stages run, the last stage's loss terms, wall seconds (``stage_seconds`` per part of the loop)
-    and the iterations run in all; ``pose`` the automatic alignment's report, if one ran."""
+    and the iterations run in all; ``pose`` the automatic alignment's report, if one ran; ``threads``
+    the CPU threads it ran on."""
 
     vertices: np.ndarray
     transform: Similarity
@@ -35,6 +36,7 @@ class Fit:
     stage_seconds: dict[str, float] = field(default_factory=dict)
     iterations: int = 0
     pose: dict | None = None
+    threads: int = 1
 
 
 @dataclass

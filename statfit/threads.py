@@ -3,8 +3,10 @@
 A fit of a head-sized mesh (≈10⁴ vertices, 100 modes) is a few hundred small kernels per second:
 a second OpenMP thread saves little on a quiet machine and, when the other core is busy, makes
 every kernel wait for a thread that is not running (8× slower was measured on a loaded 2-core
-machine). So fits run on one thread below ``PARALLEL_WORK`` and on every available core above it;
-``threads`` overrides (docs/benchmarks.md has the measurements behind the threshold).
+machine). So fits run on one thread below ``PARALLEL_WORK``; above it, on the available cores that
+are idle when the fit starts (:func:`idle_cores`: a 768² body render ran 22× slower on two threads
+beside a busy process than alone). ``threads`` overrides (docs/benchmarks.md has the measurements
+behind the threshold and the load rule).
 
 Filtered gradients and Adam moments decay to subnormal floats, which CPUs process ~100× slower.
 ``torch.set_flush_denormal`` sets the flag on the calling thread only, and OpenMP worker threads
@@ -14,6 +16,7 @@ first parallel kernel (the CLI does it at start-up); :func:`workers_flush_denorm
 from __future__ import annotations
 
 import os
+import time
 from contextlib import contextmanager
 from typing import Iterator
 
@@ -24,6 +27,9 @@ from statfit.errors import StatfitError
 # Floats a fit streams per iteration (model basis: 3N·K) above which several threads pay off.
 PARALLEL_WORK = 1 << 23
 MAX_THREADS = 256
+# A core counts as free when at least this share of it was idle over IDLE_WINDOW seconds.
+FREE_CORE = 0.75
+IDLE_WINDOW = 0.1
 _limit: int | None = None  # set by limit_threads: a batch worker's share of the machine
 
 
@@ -35,14 +41,53 @@ def available_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+def idle_cores(window: float = IDLE_WINDOW) -> float | None:
+    """How many of this process's cores (its CPU affinity) sat idle over the next ``window``
+    seconds, from the kernel's per-CPU time counters (``/proc/stat``: idle and I/O wait over all
+    time); None where there are none (not Linux). The caller sleeps meanwhile, so it is the rest
+    of the machine's load."""
+    try:
+        cpus = {f"cpu{index}" for index in os.sched_getaffinity(0)}
+        before = _cpu_times(cpus)
+        time.sleep(window)
+        after = _cpu_times(cpus)
+    except (AttributeError, OSError, ValueError):
+        return None
+    idle = 0.0
+    for cpu, (idle_after, total_after) in after.items():
+        idle_before, total_before = before.get(cpu, (idle_after, total_after))
+        elapsed = total_after - total_before
+        idle += (idle_after - idle_before) / elapsed if elapsed > 0 else 1.0
+    return idle
+
+
+def _cpu_times(cpus: set[str]) -> dict[str, tuple[int, int]]:
+    """(idle, total) clock ticks so far of each of ``cpus`` ("cpu0", ...), from /proc/stat."""
+    times = {}
+    with open("/proc/stat") as stat:
+        for line in stat:
+            name, *fields = line.split()
+            if name in cpus:
+                ticks = [int(field) for field in fields[:8]]   # user nice system idle iowait irq softirq steal
+                times[name] = (ticks[3] + ticks[4], sum(ticks))
+    if not times:
+        raise ValueError("no per-CPU times")
+    return times
+
+
 def choose_threads(work: int, threads: int | None = None) -> int:
-    """Intra-op threads for a fit streaming ``work`` floats per iteration; ``threads`` (≥ 1)
+    """Intra-op threads for a fit streaming ``work`` floats per iteration: 1 below PARALLEL_WORK,
+    else the available cores that are free now (:func:`idle_cores`, at least 1); ``threads`` (≥ 1)
     overrides the choice."""
     if threads is not None:
         if not 1 <= threads <= MAX_THREADS:
             raise StatfitError(f"--threads must be between 1 and {MAX_THREADS}, got {threads}")
         return threads
-    return 1 if work < PARALLEL_WORK else min(available_cores(), _limit or MAX_THREADS)
+    cores = min(available_cores(), _limit or MAX_THREADS)
+    if work < PARALLEL_WORK or cores == 1:
+        return 1
+    idle = idle_cores()
+    return cores if idle is None else max(1, min(cores, int(idle + 1 - FREE_CORE)))
 
 
 def limit_threads(count: int | None) -> None:

@@ -39,6 +39,7 @@ def test_synth_register_eval(scan_files, tmp_path, capsys):
     assert code == 0
     summary = json.loads(out)
     assert summary["iterations"] == 60 and summary["output"] == str(fit)
+    assert summary["threads"] == 1   # a small model runs on one thread, whatever the machine
     lines = [json.loads(line) for line in log.read_text().splitlines()]
     assert [lines[0]["type"], lines[-1]["type"]] == ["header", "summary"]
     assert {"iteration", "data", "elapsed"} <= set(lines[1]) and lines[0]["versions"]["torch"]

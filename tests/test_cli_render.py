@@ -37,6 +37,7 @@ def test_synth_render_eval(normal_files, tmp_path, capsys):
     assert code == 0, err
     summary = json.loads(out)
     assert summary["iterations"] == 40 and summary["stage_seconds"]["alignment"] > 0
+    assert summary["threads"] == 1   # a small model and map run on one thread, whatever the machine
     lines = [json.loads(line) for line in log.read_text().splitlines()]
     assert [lines[0]["type"], lines[-1]["type"]] == ["header", "summary"]
     assert {"normal", "silhouette", "total"} <= set(lines[1])

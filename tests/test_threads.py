@@ -1,4 +1,5 @@
-"""Thread counts chosen from the problem size; subnormals flushed on every worker thread."""
+"""Thread counts chosen from the problem size and the machine's load; subnormals flushed on every
+worker thread."""
 from __future__ import annotations
 
 import subprocess
@@ -8,13 +9,38 @@ import pytest
 import torch
 
 from statfit.errors import StatfitError
-from statfit.threads import PARALLEL_WORK, available_cores, choose_threads, intra_op_threads
+import statfit.threads as threads_module
+from statfit.threads import PARALLEL_WORK, available_cores, choose_threads, idle_cores, intra_op_threads
 
 
-def test_small_fits_run_on_one_thread_large_ones_on_every_core():
+def test_small_fits_run_on_one_thread_large_ones_on_every_idle_core(monkeypatch):
+    monkeypatch.setattr(threads_module, "idle_cores", lambda: float(available_cores()))
     assert choose_threads(11_248 * 3 * 100) == 1  # the ICT head
     assert choose_threads(PARALLEL_WORK) == available_cores()
     assert choose_threads(10, threads=3) == 3
+
+
+@pytest.mark.parametrize("idle, expected", [(4.0, 4), (3.8, 4), (3.7, 3), (1.0, 1), (0.0, 1), (None, 4)])
+def test_large_fits_leave_busy_cores_alone(monkeypatch, idle, expected):
+    """A core counts as free at ≥ 75% idle; no measurement (not Linux): every core."""
+    monkeypatch.setattr(threads_module, "available_cores", lambda: 4)
+    monkeypatch.setattr(threads_module, "idle_cores", lambda: idle)
+    assert choose_threads(PARALLEL_WORK) == expected
+    assert choose_threads(PARALLEL_WORK, threads=4) == 4   # asked for: never second-guessed
+
+
+def test_a_busy_process_is_seen_as_a_busy_core():
+    if idle_cores() is None:
+        pytest.skip("no per-CPU times on this system")
+    spinner = subprocess.Popen([sys.executable, "-c", "print('ready', flush=True)\nwhile True: pass"],
+                               stdout=subprocess.PIPE, text=True)
+    try:
+        assert spinner.stdout.readline().strip() == "ready"
+        idle = idle_cores(0.3)
+    finally:
+        spinner.kill()
+        spinner.wait()
+    assert 0 <= idle <= available_cores() - 0.5
 
 
 @pytest.mark.parametrize("bad", [0, -1, 10_000])
