@@ -29,6 +29,30 @@ def _angle(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(a.T @ b) - 1) / 2, -1, 1))))
 
 
+def _ict_with_inner_landmarks(ict_model):
+    from statfit.model import with_landmarks
+    from conftest import ICT_DIR
+
+    return with_landmarks(ict_model, np.load(ICT_DIR / "ict_face_identity.npz")["landmarks68"][17:68])
+
+
+def _ict_person(model, seed: int, units: str = "mm", posed: bool = True):
+    """A realistic scan of someone outside ``model``'s span, as the real-scans benchmark makes them
+    (docs/benchmarks.md §8): an identity sample plus an expression the model lacks, with hair,
+    neck and shoulders worth 50% of the face's points, from a yaw in ±45°."""
+    from statfit.synth import load_delta
+    from conftest import ICT_DIR
+
+    expressions = ICT_DIR / "ict_face_expressions.npz"
+    with np.load(expressions) as data:
+        names = [str(name) for name in data["names"]]
+    rng = np.random.default_rng(1000 + seed)
+    expression = names[rng.integers(len(names))]
+    shape = model.sample(rng) + rng.uniform(0.5, 1.0) * load_delta(str(expressions), expression)
+    return realistic_scan(shape, model.faces, rng, yaw_deg=rng.uniform(-45, 45), clutter=0.5, units=units,
+                          posed=posed)
+
+
 def test_realistic_scan_holds_the_shape_clutter_as_asked_and_its_pose(embedded_model):
     model = embedded_model
     shape = model.sample(np.random.default_rng(0))
@@ -248,20 +272,12 @@ def test_on_a_model_with_landmarks_only_the_pose_trusts_the_face_around_them(ict
     people 0-15: 1.85° mean at 0.5 radii, 1.19° at POSE_FACE_RADIUS). Four such people (an identity
     sample plus an expression outside the model), against the truth."""
     import statfit.global_align as global_align
-    from statfit.model import FACE_RADIUS, with_landmarks
-    from statfit.synth import load_delta
-    from conftest import ICT_DIR
+    from statfit.model import FACE_RADIUS
 
-    model = with_landmarks(ict_model, np.load(ICT_DIR / "ict_face_identity.npz")["landmarks68"][17:68])
-    expressions = ICT_DIR / "ict_face_expressions.npz"
-    with np.load(expressions) as data:
-        names = [str(name) for name in data["names"]]
+    model = _ict_with_inner_landmarks(ict_model)
     angles: dict[float, list[float]] = {FACE_RADIUS: [], global_align.POSE_FACE_RADIUS: []}
     for seed in range(4):
-        rng = np.random.default_rng(1000 + seed)
-        expression = names[rng.integers(len(names))]
-        shape = model.sample(rng) + rng.uniform(0.5, 1.0) * load_delta(str(expressions), expression)
-        made = realistic_scan(shape, model.faces, rng, yaw_deg=rng.uniform(-45, 45), clutter=0.5, units="mm")
+        made = _ict_person(model, seed)
         scan = Scan.from_mesh(made.vertices, made.faces)
         for radius in angles:
             with pytest.MonkeyPatch.context() as patch:
@@ -339,3 +355,25 @@ def test_clutter_does_not_move_a_fit_in_the_models_frame(embedded_model):
         fit = register(model, Scan.from_mesh(made.vertices, made.faces), "pca", align="none", clutter=True)
         errors.append(np.linalg.norm(fit.vertices - shape, axis=1)[model.regions["face"]].mean())
     assert errors[1] <= 1.1 * errors[0] + 1e-5
+
+
+@pytest.mark.slow
+def test_the_pose_found_places_the_fit_as_well_as_landmarks_do(ict_model):
+    """Issue 11's pose target at a looser margin, on six people past the benchmark's 50, in mm, cm
+    and m: the `pca` fit posed without landmarks against the same fit posed by its 51 landmarks (1
+    mm noise; weight 0, so the two differ by the pose alone). Landmark error within 1.5× on ≥ 5 of
+    6 (the benchmark, docs/benchmarks.md §8: within 1.25× on 48 of 50), and never turned away."""
+    model = _ict_with_inner_landmarks(ict_model)
+    ratios, angles = [], []
+    for seed, units in zip(range(50, 56), ("mm", "cm", "m") * 2):
+        made = _ict_person(model, seed, units)
+        scan = Scan.from_mesh(made.vertices, made.faces)
+        truth = made.truth[model.landmarks]
+        noise = np.random.default_rng(seed).normal(scale=1.0 / {"mm": 1, "cm": 10, "m": 1000}[units], size=truth.shape)
+        found = register(model, scan, "pca", threads=1)
+        placed = register(model, scan, "pca", landmarks=truth + noise, landmark_weight=0.0, threads=1)
+        error = lambda fit: np.linalg.norm(fit.vertices[model.landmarks] - truth, axis=1).mean()  # noqa: E731
+        ratios.append(error(found) / error(placed))
+        angles.append(_angle(found.transform.rotation, made.transform.rotation))
+    assert sum(ratio <= 1.5 for ratio in ratios) >= 5, ratios
+    assert max(angles) < 10, angles
