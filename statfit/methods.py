@@ -86,7 +86,7 @@ def hybrid_filter(settings: Settings, space: FitSpace, x0: torch.Tensor) -> Filt
 def _pca(settings: Settings, space: FitSpace, x0: torch.Tensor):
     scaled = space.basis_t * space.std[:, None]
     start = torch.mv(space.basis_t, (x0 - space.mean).reshape(-1)) / space.std
-    param = PCACoefficients(space.mean, scaled, start)
+    param = PCACoefficients(space.mean, scaled, start, settings.prior)
     return param, torch.optim.Adam(param.parameters(), lr=settings.lr, betas=settings.adam_betas)
 
 

@@ -85,13 +85,16 @@ class FilteredVertices:
 
 
 class PCACoefficients:
-    """x = x̄ + B c with ``basis_t`` = Bᵀ (K, 3N); c starts at ``coeffs`` (default 0)."""
+    """x = x̄ + B c with ``basis_t`` = Bᵀ (K, 3N); c starts at ``coeffs`` (default 0); ``prior``
+    w adds the term w · mean(c²) (c in standard deviations when B holds them)."""
 
-    def __init__(self, mean: torch.Tensor, basis_t: torch.Tensor, coeffs: torch.Tensor | None = None):
+    def __init__(self, mean: torch.Tensor, basis_t: torch.Tensor, coeffs: torch.Tensor | None = None,
+                 prior: float = 0.0):
         self.mean = mean
         self.basis_t = basis_t.contiguous()
         start = torch.zeros(basis_t.shape[0], dtype=mean.dtype, device=mean.device) if coeffs is None else coeffs
         self.coeffs = start.detach().clone().requires_grad_(True)
+        self.prior_weight = prior
 
     def parameters(self) -> list[torch.Tensor]:
         return [self.coeffs]
@@ -100,7 +103,7 @@ class PCACoefficients:
         return self.mean + linear_map(self.coeffs, self._shape, self._coefficients)
 
     def prior(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
-        return {}
+        return {"prior": self.prior_weight * self.coeffs.square().mean()} if self.prior_weight else {}
 
     def _shape(self, coeffs: torch.Tensor) -> torch.Tensor:
         return expand(self.basis_t, coeffs).view_as(self.mean)

@@ -21,7 +21,7 @@ MAX_ITERATIONS = 10_000_000
 MAX_LEVELS = 20
 # Upper bounds: far beyond any useful value (β 1000, λ 300, γ 1, σ 0.003 are the largest tuned ones),
 # below what breaks the arithmetic (λ 10³⁰ makes I + λL numerically indefinite; β^p overflows).
-LIMITS = {"beta": 1e9, "lam": 1e9, "mode_gain": 100.0, "noise": 1e3, "power": 100.0}
+LIMITS = {"beta": 1e9, "lam": 1e9, "mode_gain": 100.0, "noise": 1e3, "power": 100.0, "prior": 1e9}
 
 
 @dataclass(frozen=True)
@@ -35,7 +35,8 @@ class Settings:
     (Adam, or UniformAdam for filtered methods; ``lr``, ``adam_betas``) or "gauss-newton" (pca on a scan:
     the closed-form coefficient solve, ``iterations`` an upper bound, ``noise`` σ the residual noise
     that weighs the Gaussian prior, in fit-frame units, reached through ``levels`` continuation
-    levels). ``landmarks`` False: the stage does not fit a landmark term (the landmarks, if given,
+    levels). ``prior``: with Adam on pca's coefficients c (in standard deviations), the weight w of
+    a Gaussian prior term w · mean(c²) (0: none). ``landmarks`` False: the stage does not fit a landmark term (the landmarks, if given,
     still place the start and the other stages). Out-of-range values raise StatfitError naming the
     setting.
     """
@@ -53,6 +54,7 @@ class Settings:
     optimizer: str = "adam"
     noise: float = 0.003
     levels: int = 5
+    prior: float = 0.0
     landmarks: bool = True
 
     def __post_init__(self) -> None:
@@ -71,6 +73,9 @@ class Settings:
             beta_with_power(self.beta, self.power)  # the filters' β'
         except OverflowError:
             raise StatfitError(f"(1 + beta)^power overflows: beta {self.beta}, power {self.power}") from None
+        if self.prior and (self.method != "pca" or self.optimizer != "adam"):
+            raise StatfitError(f"prior weighs pca's coefficients under Adam, not {self.method!r} with "
+                               f"{self.optimizer!r}" + (" (its prior is noise)" if self.optimizer == "gauss-newton" else ""))
         if self.laplacian not in LAPLACIANS:
             raise StatfitError(f"unknown Laplacian {self.laplacian!r}; choose one of {', '.join(LAPLACIANS)}")
         if self.solver not in SOLVERS:

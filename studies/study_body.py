@@ -19,10 +19,11 @@ of the unseen triangles.
 Results are appended to ``studies/results/study_body.json`` after every fit (a rerun resumes;
 ``study_body_plain_normals.json`` holds the fits before the normal term was antialiased);
 ``--report`` prints the Markdown tables of docs/studies.md; ``--trace SEED,YAW`` follows one fit's
-error per region. From the repository root:
+error per region (on ``--threads``, 2 unless told; the study's fits run on 1). From the repository root:
 
     PYTHONPATH=. python studies/study_body.py [--size 384] [--methods a,b] [--workers 2] [--report]
-    PYTHONPATH=. python studies/study_body.py --trace 1,-60 --methods default
+    PYTHONPATH=. python studies/study_body.py --trace 1,-60 --methods default [--threads 1]
+    PYTHONPATH=. python studies/study_body.py --trace 2,-60 --methods candidate:pca500p-default
 """
 from __future__ import annotations
 
@@ -56,7 +57,23 @@ CANDIDATES = {
                                 ("hybrid", 600, 0.05, {"beta": 30.0, **_HYBRID})),
     "stat1500-hybrid1500": (("statistical", 1500, 0.01, {"beta": 1000.0, "mode_gain": 1.0}),
                             ("hybrid", 1500, 0.01, {"beta": 30.0, **_HYBRID})),
+    # The span first, each coefficient at its own Adam step (as `pca`, which wins two side views),
+    # then the render default's two hybrid stages.
+    "pca500-default": (("pca", 500, 0.05, {}), ("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}),
+                       ("hybrid", 300, 0.05, {"beta": 10.0, **_HYBRID})),
+    # ... with a Gaussian prior on the coefficients (0.1 · mean(c²)): body 4's side view diverged without.
+    "pca500p-default": (("pca", 500, 0.05, {"prior": 0.1}), ("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}),
+                        ("hybrid", 300, 0.05, {"beta": 10.0, **_HYBRID})),
+    # ... shorter (550 iterations, against the default's 450; faces' ≤ 30 s at 512²).
+    "pca250p-h100-h200": (("pca", 250, 0.05, {"prior": 0.1}), ("hybrid", 100, 0.05, {"beta": 30.0, **_HYBRID}),
+                          ("hybrid", 200, 0.05, {"beta": 10.0, **_HYBRID})),
 }
+
+
+def schedule(method: str) -> dict:
+    """``reconstruct``'s keyword for a method name of the study: a candidate ("candidate:NAME") runs
+    its stages; a method, its own."""
+    return {"stages": candidate_stages(method.split(":", 1)[1])} if method.startswith("candidate:") else {}
 
 
 def candidate_stages(name: str):
@@ -140,9 +157,7 @@ def run_case(task: tuple[int, float, float, str, int], iterations: int | None = 
     model, gt, camera, normal_map = view(seed, yaw, pitch, size)
     started = time.perf_counter()
     overrides = {} if iterations is None else {"iterations": iterations}
-    if method.startswith("candidate:"):
-        overrides = {"stages": candidate_stages(method.split(":", 1)[1])}
-    fit = reconstruct(model, normal_map, camera, method, threads=1, **overrides).vertices
+    fit = reconstruct(model, normal_map, camera, method, threads=1, **(overrides | schedule(method))).vertices
     seconds = time.perf_counter() - started
     seen = visible_vertices(gt, model.faces, camera)
     centre = -camera.rotation.numpy().T @ camera.world_to_camera[:3, 3].numpy()
@@ -160,13 +175,13 @@ def run_case(task: tuple[int, float, float, str, int], iterations: int | None = 
     return row
 
 
-def trace(seed: int, yaw: float, method: str = "default", size: int = 384, every: int = 50) -> None:
+def trace(seed: int, yaw: float, method: str = "default", size: int = 384, every: int = 50, threads: int = 2) -> None:
     """Print the aligned error (mm) over all, seen and unseen vertices and per region every
     ``every`` iterations of one fit (iteration 0: after the rigid alignment, which also fits the
     model's coefficients): where along the fit a view's error is made."""
     import torch
 
-    torch.set_num_threads(2)
+    torch.set_num_threads(threads)
     from statfit.align import umeyama
     from statfit.inverse_render import reconstruct
     from statfit.metrics import visible_vertices
@@ -186,7 +201,7 @@ def trace(seed: int, yaw: float, method: str = "default", size: int = 384, every
         print(f"iteration {iteration:5d}: all {error.mean():.1f} seen {error[seen].mean():.1f} "
               f"unseen {error[~seen].mean():.1f} | {parts}", flush=True)
 
-    fit = reconstruct(model, normal_map, camera, method, threads=2, on_snapshot=report_at)
+    fit = reconstruct(model, normal_map, camera, method, threads=threads, on_snapshot=report_at, **schedule(method))
     print(f"final: all {aligned_error(fit.vertices).mean():.1f} mm after {fit.iterations} iterations")
 
 
@@ -241,6 +256,7 @@ def main() -> None:
     parser.add_argument("--seeds", default=",".join(map(str, SEEDS)))
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--report", action="store_true")
+    parser.add_argument("--threads", type=int, default=2, help="--trace's thread count (the study's fits: 1)")
     parser.add_argument("--trace", metavar="SEED,YAW", help="trace one fit of --methods' first method instead")
     args = parser.parse_args()
     if args.report:
@@ -248,7 +264,7 @@ def main() -> None:
         return
     if args.trace:
         seed, yaw = args.trace.split(",")
-        trace(int(seed), float(yaw), args.methods.split(",")[0], args.size)
+        trace(int(seed), float(yaw), args.methods.split(",")[0], args.size, threads=args.threads)
         return
     body_model()  # build the cache once, before the workers
     done = {(r["seed"], r["yaw"], r["method"], r["size"]) for r in done_rows()}

@@ -161,3 +161,28 @@ def test_gauss_newton_is_for_the_coefficients_only():
 def test_a_pipelines_bad_step_size_is_refused_naming_it(lr):
     with pytest.raises(StatfitError, match="lr"):
         resolve("default", lr=lr)
+
+
+@pytest.mark.parametrize("settings", [dict(method="statistical", lr=0.01, prior=0.1),
+                                      dict(method="pca", lr=0.0, optimizer="gauss-newton", prior=0.1),
+                                      dict(method="pca", lr=0.01, prior=-1.0),
+                                      dict(method="pca", lr=0.01, prior=math.nan)])
+def test_a_coefficient_prior_is_for_pcas_adam_stage_only(settings):
+    with pytest.raises(StatfitError, match="prior"):
+        Settings(iterations=10, **settings)
+
+
+def test_pcas_coefficient_prior_pulls_each_coefficient_to_zero(embedded_model):
+    """w · mean(c²): value and gradient 2 w c / K in closed form, beside the data term's."""
+    from statfit.parametrize import PCACoefficients
+
+    space = FitSpace.of(embedded_model)
+    k = len(space.std)
+    start = torch.linspace(-2.0, 2.0, k, dtype=space.mean.dtype)
+    param = PCACoefficients(space.mean, space.basis_t * space.std[:, None], start, prior=0.5)
+    x = param.vertices()
+    terms = param.prior(x)
+    torch.testing.assert_close(terms["prior"], 0.5 * (start**2).mean())
+    terms["prior"].backward()
+    torch.testing.assert_close(param.coeffs.grad, 2 * 0.5 * start / k)
+    assert PCACoefficients(space.mean, space.basis_t, start).prior(x) == {}   # no weight, no term
