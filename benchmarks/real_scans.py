@@ -160,8 +160,9 @@ def section(data: dict, quick: bool) -> Section:
         beyond = [r for r in pose if r["without_mm"] > 1.25 * r["placed_mm"]]
         parts[0] += (f" Against the same scan with its landmarks placing the start only (`--landmark-weight 0`: the "
                      f"two fits differ by their pose alone; landmark error mean "
-                     f"{np.mean([r['placed_mm'] for r in pose]):.2f} mm): within 1.25× **{int((placed <= 1.25).sum())} "
-                     f"of {len(pose)}**, ratio median {np.median(placed):.2f}, worst {placed.max():.2f}"
+                     f"{np.mean([r['placed_mm'] for r in pose]):.2f} mm): within 1.25× "
+                     f"**{int((placed <= 1.25).sum())} of {len(pose)}**, ratio median {np.median(placed):.2f}, "
+                     f"worst {placed.max():.2f}"
                      + ("" if not beyond else "; beyond: " + ", ".join(
                          f"seed {r['seed']} ({r['without_mm']:.1f} vs {r['placed_mm']:.1f} mm)" for r in beyond))
                      + ".")

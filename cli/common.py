@@ -52,8 +52,8 @@ MethodOption = typer.Option("default", help="default (the measured best pipeline
 PresetOption = typer.Option("tuned", help="tuned (our measured defaults) or paper (the paper's settings, exactly).")
 DeviceOption = typer.Option("cpu", envvar="STATFIT_DEVICE", help="auto, cpu or cuda (default: $STATFIT_DEVICE, else cpu).")
 ThreadsOption = typer.Option(None, help="CPU threads for the fit. Default: 1 for head-sized models (a second "
-                             "thread gains little and stalls when the other core is busy); for large ones, the cores idle "
-                             "when the fit starts.",
+                             "thread gains little and stalls when the other core is busy); for large ones, the cores "
+                             "idle when the fit starts.",
                              show_default=False)
 SeedOption = seed_option(0, "Random seed; the same seed gives the same mesh.")
 LogOption = typer.Option(None, help="JSON-lines log: header, a record every 10 iterations, summary.",

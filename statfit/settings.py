@@ -36,9 +36,9 @@ class Settings:
     the closed-form coefficient solve, ``iterations`` an upper bound, ``noise`` σ the residual noise
     that weighs the Gaussian prior, in fit-frame units, reached through ``levels`` continuation
     levels). ``prior``: with Adam on pca's coefficients c (in standard deviations), the weight w of
-    a Gaussian prior term w · mean(c²) (0: none). ``landmarks`` False: the stage does not fit a landmark term (the landmarks, if given,
-    still place the start and the other stages). Out-of-range values raise StatfitError naming the
-    setting.
+    a Gaussian prior term w · mean(c²) (0: none). ``landmarks`` False: the stage does not fit a
+    landmark term (the landmarks, if given, still place the start and the other stages).
+    Out-of-range values raise StatfitError naming the setting.
     """
 
     method: str
@@ -74,8 +74,9 @@ class Settings:
         except OverflowError:
             raise StatfitError(f"(1 + beta)^power overflows: beta {self.beta}, power {self.power}") from None
         if self.prior and (self.method != "pca" or self.optimizer != "adam"):
+            hint = " (its prior is noise)" if self.optimizer == "gauss-newton" else ""
             raise StatfitError(f"prior weighs pca's coefficients under Adam, not {self.method!r} with "
-                               f"{self.optimizer!r}" + (" (its prior is noise)" if self.optimizer == "gauss-newton" else ""))
+                               f"{self.optimizer!r}{hint}")
         if self.laplacian not in LAPLACIANS:
             raise StatfitError(f"unknown Laplacian {self.laplacian!r}; choose one of {', '.join(LAPLACIANS)}")
         if self.solver not in SOLVERS:

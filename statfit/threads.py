@@ -4,9 +4,9 @@ A fit of a head-sized mesh (≈10⁴ vertices, 100 modes) is a few hundred small
 a second OpenMP thread saves little on a quiet machine and, when the other core is busy, makes
 every kernel wait for a thread that is not running (8× slower was measured on a loaded 2-core
 machine). So fits run on one thread below ``PARALLEL_WORK``; above it, on the available cores that
-are idle when the fit starts (:func:`idle_cores`: a 768² body render ran 22× slower on two threads
-beside a busy process than alone). ``threads`` overrides (docs/benchmarks.md has the measurements
-behind the threshold and the load rule).
+are idle when the fit starts (:func:`idle_cores`: beside one spinning process, a 768² body render
+took 6× its quiet time on two threads, 1.2× on the one chosen). ``threads`` overrides
+(docs/benchmarks.md has the measurements behind the threshold and the load rule).
 
 Filtered gradients and Adam moments decay to subnormal floats, which CPUs process ~100× slower.
 ``torch.set_flush_denormal`` sets the flag on the calling thread only, and OpenMP worker threads
