@@ -197,6 +197,10 @@ class Pipeline:
 # the expression in — lower error on all four study cases in a quarter of the time (§11). splat: the
 # statistical filter finds the shape, then 100 unfiltered steps at `none`'s own step size let the
 # splats' images in: +1.1 dB held-out PSNR over `pca` for +0.3 points of geometry error (§14).
+# render's span-first (opt-in): 500 Adam steps on the coefficients under a Gaussian prior, then the
+# default's stages: on the body study 15.0 mm against 16.2, lower on 9 of 12 views and the most
+# plausible unseen side of any fit, but one side view 29.4 -> 53.8 mm (an arm's depth the span
+# resolves wrongly), and faces no better at 1.6x the time (§13) — so not the default.
 PIPELINES: dict[str, dict[str, Pipeline]] = {
     "register": {"default": Pipeline((Settings("pca", GAUSS_NEWTON_ITERATIONS, 0.0, optimizer="gauss-newton",
                                                noise=0.003, landmarks=False),
@@ -204,7 +208,11 @@ PIPELINES: dict[str, dict[str, Pipeline]] = {
                                      "the closed-form coefficients, then 200 hybrid steps (docs/studies.md §9)")},
     "render": {"default": Pipeline((Settings("hybrid", 150, 0.05, beta=30.0, lam=19.0, mode_gain=1.0),
                                     Settings("hybrid", 300, 0.05, beta=10.0, lam=19.0, mode_gain=1.0)),
-                                   "the rendering speed study's schedule")},
+                                   "the rendering speed study's schedule"),
+               "span-first": Pipeline((Settings("pca", 500, 0.05, prior=0.1),
+                                       Settings("hybrid", 150, 0.05, beta=30.0, lam=19.0, mode_gain=1.0),
+                                       Settings("hybrid", 300, 0.05, beta=10.0, lam=19.0, mode_gain=1.0)),
+                                      "the span first, then the default's stages (docs/studies.md §13)")},
     "splat": {"default": Pipeline((Settings("statistical", 300, 0.05, beta=1000.0, mode_gain=1.0),
                                    Settings("none", 100, 0.001)),
                                   "statistical for the shape, then a short unfiltered refinement")},

@@ -62,6 +62,7 @@ CANDIDATES = {
     "pca500-default": (("pca", 500, 0.05, {}), ("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}),
                        ("hybrid", 300, 0.05, {"beta": 10.0, **_HYBRID})),
     # ... with a Gaussian prior on the coefficients (0.1 · mean(c²)): body 4's side view diverged without.
+    # Shipped as the opt-in `render --method span-first` (docs/studies.md §13).
     "pca500p-default": (("pca", 500, 0.05, {"prior": 0.1}), ("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}),
                         ("hybrid", 300, 0.05, {"beta": 10.0, **_HYBRID})),
     # ... shorter (550 iterations, against the default's 450; faces' ≤ 30 s at 512²).

@@ -212,3 +212,19 @@ def test_render_help_teaches(capsys):
     code, out, _ = run(["render", "--help"], capsys)
     assert code == 0 and "--normal-space" in out and "--preview" in out and "--align" in out
 
+
+
+def test_span_first_runs_its_three_stages_from_the_command_line(normal_files, tmp_path, capsys):
+    """render's opt-in pipeline: the coefficients under their prior, then the default's two stages
+    (the log's header lists them; register does not offer it)."""
+    exr, camera, _ = normal_files
+    log = tmp_path / "fit.jsonl"
+    code, out, err = run(["render", str(exr), "--camera", str(camera), "--method", "span-first", "--out",
+                          str(tmp_path / "fit.ply"), "--log", str(log), "--json", *FAST], capsys)
+    assert code == 0, err
+    assert json.loads(out)["iterations"] == 40
+    stages = json.loads(log.read_text().splitlines()[0])["stages"]
+    assert [(s["method"], s["prior"] > 0) for s in stages] == [("pca", True), ("hybrid", False), ("hybrid", False)]
+    code, _, err = run(["register", str(tmp_path / "fit.ply"), "--method", "span-first", "--out",
+                        str(tmp_path / "r.ply")], capsys)
+    assert code == 2 and "unknown method 'span-first' for register" in err and not (tmp_path / "r.ply").exists()
