@@ -153,38 +153,35 @@ def _study_fit(method: str, yaw: float, size: int, iterations: int | None = None
     return study_body.run_case((4, yaw, 10.0, method, size), iterations)
 
 
-def _fit_unseen_normals(method: str, size: int, iterations: int) -> float:
-    """Mean angle (°) between fitted and true normals on the side a held-out body's map never shows
-    (the body study's case: body 4, yaw 30°, pitch 10°)."""
-    return _study_fit(method, 30.0, size, iterations)["normal_angle_unseen_deg"]
+@pytest.fixture(scope="module")
+def study_fits(study_model) -> dict[str, dict]:
+    """The slow body tests' four fits of body 4, two at a time (the longest first): `span-first` and
+    the default from the side at 384²; `statistical` and `laplacian` from the front at 160², 1,000
+    iterations."""
+    from conftest import run_two_at_a_time
 
-
-def _fit_error(method: str, yaw: float, size: int) -> float:
-    """Aligned all-vertex error (mm) of one fit of body 4 from ``yaw``."""
-    return _study_fit(method, yaw, size)["aligned"]["all"]
+    return run_two_at_a_time(_study_fit, {"span-first": ("span-first", -60.0, 384), "default": ("default", -60.0, 384),
+                                          "statistical": ("statistical", 30.0, 160, 1000),
+                                          "laplacian": ("laplacian", 30.0, 160, 1000)})
 
 
 @pytest.mark.slow
 @needs_data
-def test_the_statistical_filter_keeps_the_unseen_side_plausible(study_model):
+def test_the_statistical_filter_keeps_the_unseen_side_plausible(study_fits):
     """The paper's body claim, on a body the model never saw: the Laplacian filter fits the visible
     side and bends the unseen one; the statistical filter keeps it close to a body's shape (mean
     normal angle on the unseen side; study: 8.5° vs 18.2° over 12 fits at 384² and 3000 iterations; at
     the 160² and 1000 iterations used here to keep the suite short, 10.2° vs 16.7° before the normal
     term was antialiased)."""
-    from conftest import run_two_at_a_time
-
-    angles = run_two_at_a_time(_fit_unseen_normals, {m: (m, 160, 1000) for m in ("statistical", "laplacian")})
+    angles = {m: study_fits[m]["normal_angle_unseen_deg"] for m in ("statistical", "laplacian")}
     assert angles["statistical"] < 0.75 * angles["laplacian"], angles
 
 
 @pytest.mark.slow
 @needs_data
-def test_span_first_places_the_side_views_limbs_the_default_misses(study_model):
+def test_span_first_places_the_side_views_limbs_the_default_misses(study_fits):
     """`render --method span-first` on the body study's case where the span matters most: body 4
     seen from the side (yaw −60°, 384²), whose arms the default leaves misplaced (study: 24.9 mm,
     span-first 12.0; docs/studies.md §13)."""
-    from conftest import run_two_at_a_time
-
-    errors = run_two_at_a_time(_fit_error, {m: (m, -60.0, 384) for m in ("default", "span-first")})
+    errors = {m: study_fits[m]["aligned"]["all"] for m in ("default", "span-first")}
     assert errors["span-first"] < 0.7 * errors["default"], errors
