@@ -213,7 +213,6 @@ def test_render_help_teaches(capsys):
     assert code == 0 and "--normal-space" in out and "--preview" in out and "--align" in out
 
 
-
 def test_span_first_runs_its_three_stages_from_the_command_line(normal_files, tmp_path, capsys):
     """render's opt-in pipeline: the coefficients under their prior, then the default's two stages
     (the log's header lists them; register does not offer it)."""
