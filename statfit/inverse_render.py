@@ -41,6 +41,13 @@ NORMAL_SPACES = ("world", "camera")
 NORMAL_CONVENTIONS = ("opencv", "opengl")
 POSE_ITERATIONS = 200
 POSE_LR = 0.01
+# The rigid alignment's step on the model's coefficients (standard deviations). At POSE_LR they
+# move at most ~2 in its 200 steps, short of what bodies far from the mean need (a 1.21 m body:
+# -1.8 on the size mode alone). 0.05 (`studies/study_body.py --align-shape-lr 0.05`) lowered the
+# render default's body error 16.2 -> 12.2 mm and left faces equal, but lowered `laplacian`'s more,
+# below the default's on every body measured (docs/studies.md §13): kept at the pose's step until
+# every method has been rerun with it.
+SHAPE_LR = POSE_LR
 GOOD_OVERLAP = 0.7
 MIN_COVERED_PIXELS = 16
 POSE_GAIN = 0.1
@@ -234,12 +241,14 @@ def _align(start: torch.Tensor, objective: NormalMapObjective, space: FitSpace, 
     """The model → unit-frame pose and the start shape for the fit.
 
     The model's coefficients are fitted jointly with the pose (so that the pose does not absorb
-    differences of shape), and, as a reference, alone with the pose held at ``guess``; the pose
-    is kept only where it lowers the objective by ``POSE_GAIN`` or more (from one view, small
-    rotations trade off against expressions and identity), or where the search had to start from
-    a rough ``guess`` (None: the silhouettes overlapped, no move was needed)."""
+    differences of shape; under a rigid pose at the step SHAPE_LR), and, as a reference, alone
+    with the pose held at ``guess``; the pose is kept only where it lowers the objective by
+    ``POSE_GAIN`` or more (from one view, small rotations trade off against expressions and
+    identity), or where the search had to start from a rough ``guess`` (None: the silhouettes
+    overlapped, no move was needed)."""
     basis = (space.basis_t * space.std[:, None]).view(len(space.std), -1, 3)
-    common = dict(iterations=POSE_ITERATIONS, lr=POSE_LR, start=guess, fixed_axis=view_axis, shape_basis=basis)
+    common = dict(iterations=POSE_ITERATIONS, lr=POSE_LR, start=guess, fixed_axis=view_axis, shape_basis=basis,
+                  shape_lr=POSE_LR if with_scale else SHAPE_LR)   # with a scale, the size mode trades against it
     moved = fit_pose(start, objective, with_scale=with_scale, **common)
     if guess is not None:
         return moved.pose, moved.shape  # the silhouettes disagreed: the rough guess needs refining

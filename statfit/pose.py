@@ -35,7 +35,8 @@ def _skew(omega: torch.Tensor) -> torch.Tensor:
 
 def fit_pose(vertices: torch.Tensor, loss: Loss, *, with_scale: bool = False, iterations: int = 200,
              lr: float = 0.01, start: Similarity | None = None, fixed_axis: torch.Tensor | None = None,
-             shape_basis: torch.Tensor | None = None, shape_prior: float = SHAPE_PRIOR, move: bool = True) -> PoseFit:
+             shape_basis: torch.Tensor | None = None, shape_prior: float = SHAPE_PRIOR, shape_lr: float | None = None,
+             move: bool = True) -> PoseFit:
     """The pose y = s·R·x + t of ``vertices`` (N, 3) that minimises ``sum(loss(y).values())``.
 
     Adam on a rotation vector (exponential map), a translation and, ``with_scale``, log s; the
@@ -44,8 +45,9 @@ def fit_pose(vertices: torch.Tensor, loss: Loss, *, with_scale: bool = False, it
     camera's viewing axis, along which one view barely constrains it). Starts from ``start``
     (default: the identity). ``shape_basis`` (K, N, 3): the shape varies jointly as
     ``vertices + Σ c_k basis_k`` with a penalty ``shape_prior·‖c‖²``, so that the pose need not
-    explain differences of shape; ``move=False`` keeps the pose at ``start`` and fits the shape
-    only. Returns the best pose seen, with its shape and objective value.
+    explain differences of shape, each coefficient at Adam's step ``shape_lr`` (default ``lr``);
+    ``move=False`` keeps the pose at ``start`` and fits the shape only. Returns the best pose
+    seen, with its shape and objective value.
     """
     dtype, device = vertices.dtype, vertices.device
     centre = vertices.detach().mean(dim=0)
@@ -62,9 +64,10 @@ def fit_pose(vertices: torch.Tensor, loss: Loss, *, with_scale: bool = False, it
     log_scale = torch.tensor(float(np.log(start.scale)), dtype=dtype, device=device, requires_grad=with_scale)
     coefficients = torch.zeros(0 if shape_basis is None else len(shape_basis), dtype=dtype, device=device,
                                requires_grad=shape_basis is not None)
-    params = (([omega, step] + ([log_scale] if with_scale else [])) if move else []) \
-        + ([coefficients] if shape_basis is not None else [])
-    optimizer = torch.optim.Adam(params, lr=lr)
+    groups = [{"params": [omega, step] + ([log_scale] if with_scale else [])}] if move else []
+    if shape_basis is not None:
+        groups.append({"params": [coefficients], "lr": lr if shape_lr is None else shape_lr})
+    optimizer = torch.optim.Adam(groups, lr=lr)
     centred = vertices.detach() - centre
 
     def shape() -> torch.Tensor:

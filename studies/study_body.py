@@ -24,6 +24,7 @@ error per region (on ``--threads``, 2 unless told; the study's fits run on 1). F
     PYTHONPATH=. python studies/study_body.py [--size 384] [--methods a,b] [--workers 2] [--report]
     PYTHONPATH=. python studies/study_body.py --trace 1,-60 --methods default [--threads 1]
     PYTHONPATH=. python studies/study_body.py --trace 2,-60 --methods candidate:pca500p-default
+    PYTHONPATH=. python studies/study_body.py --align-shape-lr 0.05 [--report]   # the alignment probe (§13)
 """
 from __future__ import annotations
 
@@ -33,7 +34,7 @@ import os
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
-from functools import lru_cache
+from functools import lru_cache, partial
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +44,9 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from common import MAKEHUMAN  # noqa: E402
 
 RESULTS = ROOT / "studies" / "results" / "study_body.json"
+# ``--align-shape-lr X``: the rigid alignment's step on the coefficients set to X
+# (statfit.inverse_render.SHAPE_LR), its rows kept apart in this file.
+PROBE_RESULTS = ROOT / "studies" / "results" / "study_body_align_shape_lr{}.json"
 MODEL_CACHE = Path(os.environ.get("STATFIT_BODY_MODEL", "/tmp/statfit-study-body-300.npz"))
 SEEDS = (1, 2, 3, 4, 5, 6)
 VIEWS = ((30.0, 10.0), (-60.0, 10.0))
@@ -145,15 +149,21 @@ def normal_angle(fit: np.ndarray, gt: np.ndarray, faces: np.ndarray, where: np.n
     return float(np.degrees(np.arccos(cosine)).mean())
 
 
-def run_case(task: tuple[int, float, float, str, int], iterations: int | None = None) -> dict:
-    """One fit of a held-out body from one view; ``iterations`` other than the method's (tests)."""
+def run_case(task: tuple[int, float, float, str, int], iterations: int | None = None,
+             align_shape_lr: float | None = None) -> dict:
+    """One fit of a held-out body from one view; ``iterations`` other than the method's (tests);
+    ``align_shape_lr`` the rigid alignment's step on the coefficients (None: as shipped)."""
     seed, yaw, pitch, method, size = task
     import torch
 
     torch.set_num_threads(1)
+    import statfit.inverse_render
     from statfit.align import umeyama
     from statfit.inverse_render import reconstruct
     from statfit.metrics import visible_vertices
+
+    if align_shape_lr is not None:
+        statfit.inverse_render.SHAPE_LR = align_shape_lr
 
     model, gt, camera, normal_map = view(seed, yaw, pitch, size)
     started = time.perf_counter()
@@ -206,8 +216,8 @@ def trace(seed: int, yaw: float, method: str = "default", size: int = 384, every
     print(f"final: all {aligned_error(fit.vertices).mean():.1f} mm after {fit.iterations} iterations")
 
 
-def done_rows() -> list[dict]:
-    return [json.loads(line) for line in RESULTS.read_text().splitlines()] if RESULTS.exists() else []
+def done_rows(results: Path = RESULTS) -> list[dict]:
+    return [json.loads(line) for line in results.read_text().splitlines()] if results.exists() else []
 
 
 def report(rows: list[dict]) -> str:
@@ -259,24 +269,27 @@ def main() -> None:
     parser.add_argument("--report", action="store_true")
     parser.add_argument("--threads", type=int, default=2, help="--trace's thread count (the study's fits: 1)")
     parser.add_argument("--trace", metavar="SEED,YAW", help="trace one fit of --methods' first method instead")
+    parser.add_argument("--align-shape-lr", type=float, help="the rigid alignment's step on the coefficients "
+                        "(shipped: the pose's, 0.01); rows go to study_body_align_shape_lr<X>.json")
     args = parser.parse_args()
+    results = RESULTS if args.align_shape_lr is None else Path(str(PROBE_RESULTS).format(args.align_shape_lr))
     if args.report:
-        print(report(done_rows()))
+        print(report(done_rows(results)))
         return
     if args.trace:
         seed, yaw = args.trace.split(",")
         trace(int(seed), float(yaw), args.methods.split(",")[0], args.size, threads=args.threads)
         return
     body_model()  # build the cache once, before the workers
-    done = {(r["seed"], r["yaw"], r["method"], r["size"]) for r in done_rows()}
+    done = {(r["seed"], r["yaw"], r["method"], r["size"]) for r in done_rows(results)}
     methods = [m for m in args.methods.split(",") if m] + [f"candidate:{c}" for c in args.candidates.split(",") if c]
     tasks = [(seed, yaw, pitch, method, args.size) for method in methods
              for seed in map(int, args.seeds.split(",")) for yaw, pitch in VIEWS
              if (seed, yaw, method, args.size) not in done]
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    results.parent.mkdir(parents=True, exist_ok=True)
     with ProcessPoolExecutor(args.workers) as pool:
-        for row in pool.map(run_case, tasks):
-            with RESULTS.open("a") as handle:
+        for row in pool.map(partial(run_case, align_shape_lr=args.align_shape_lr), tasks):
+            with results.open("a") as handle:
                 handle.write(json.dumps(row) + "\n")
             print(f"{row['method']:12s} seed {row['seed']} yaw {row['yaw']:5.0f}: all {row['aligned']['all']:.1f} mm "
                   f"(raw {row['raw']['all']:.1f}), unseen {row['aligned']['unseen']:.1f}, {row['seconds']:.0f} s", flush=True)
