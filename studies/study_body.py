@@ -272,6 +272,8 @@ def main() -> None:
     parser.add_argument("--align-shape-lr", type=float, help="the rigid alignment's step on the coefficients "
                         "(shipped: the pose's, 0.01); rows go to study_body_align_shape_lr<X>.json")
     args = parser.parse_args()
+    if args.align_shape_lr is not None and not 0 < args.align_shape_lr < 10:   # also refuses NaN
+        parser.error(f"--align-shape-lr must be a step between 0 and 10, got {args.align_shape_lr}")
     results = RESULTS if args.align_shape_lr is None else Path(str(PROBE_RESULTS).format(args.align_shape_lr))
     if args.report:
         print(report(done_rows(results)))
