@@ -49,9 +49,7 @@ KOption = typer.Option(None, "--k", help="Use only the first K modes of the mode
 MethodOption = typer.Option("default", help="default (the measured best pipeline) or one method: "
                             + "; ".join(f"{name}: {method.summary}" for name, method in METHODS.items())
                             + ". register's pca is the closed-form Gauss-Newton fit alone; its default adds 200 hybrid steps."
-                            " render also offers span-first: 500 steps on the model's coefficients, then the default's "
-                            "stages; better on most held-out bodies, but it can put a limb at the wrong depth from a side "
-                            "view (docs/studies.md §13).")
+                            " render's default: two hybrid stages, then the Laplacian filter (docs/studies.md §13).")
 PresetOption = typer.Option("tuned", help="tuned (our measured defaults) or paper (the paper's settings, exactly).")
 DeviceOption = typer.Option("cpu", envvar="STATFIT_DEVICE", help="auto, cpu or cuda (default: $STATFIT_DEVICE, else cpu).")
 ThreadsOption = typer.Option(None, help="CPU threads for the fit. Default: 1 for head-sized models (a second "

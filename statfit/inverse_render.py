@@ -41,13 +41,11 @@ NORMAL_SPACES = ("world", "camera")
 NORMAL_CONVENTIONS = ("opencv", "opengl")
 POSE_ITERATIONS = 200
 POSE_LR = 0.01
-# The rigid alignment's step on the model's coefficients (standard deviations). At POSE_LR they
-# move at most ~2 in its 200 steps, short of what bodies far from the mean need (a 1.21 m body:
-# -1.8 on the size mode alone). 0.05 (`studies/study_body.py --align-shape-lr 0.05`) lowered the
-# render default's body error 16.2 -> 12.2 mm and left faces equal, but lowered `laplacian`'s more,
-# below the default's on every body measured (docs/studies.md §13): kept at the pose's step until
-# every method has been rerun with it.
-SHAPE_LR = POSE_LR
+# The rigid alignment's step on the model's coefficients (standard deviations), 5x the pose's: at
+# the pose's step they move at most ~2 in its 200 steps, short of what bodies far from the mean need
+# (a 1.21 m body: -1.8 on the size mode alone). On the body study every method ends closer from this
+# start (the old default 16.2 -> 12.2 mm); faces are equal (docs/studies.md §13, session 9).
+SHAPE_LR = 0.05
 GOOD_OVERLAP = 0.7
 MIN_COVERED_PIXELS = 16
 POSE_GAIN = 0.1

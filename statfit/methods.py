@@ -192,27 +192,24 @@ class Pipeline:
 # off the span, at a tenth of the time (docs/studies.md §9). Its step, 0.03, travels far enough in
 # 200 steps for landmarks to open a jaw the span cannot (§12: 0.39x the start-only landmark error,
 # where 0.006 reached 0.66x) for +0.6% in-span error. render: the hybrid filter with mode
-# gains (γ = 1), the lowest error over all vertices of everything tried (§5), in 450 iterations of a 5× larger step
-# instead of 3,000: β 30 first, then β 10, whose larger off-model gain (1/11 instead of 1/31) lets
-# the expression in — lower error on all four study cases in a quarter of the time (§11). splat: the
+# gains (γ = 1), β 30 for 150 iterations then β 10 for 300 at a 5× larger step than the 3,000-iteration
+# methods (β 10's off-model gain, 1/11 instead of 1/31, lets the expression in; §11), then 600
+# iterations of the Laplacian filter (lr 0.01), which fits the detail no span holds. From the rigid
+# alignment's converged coefficients (SHAPE_LR) it is the lowest all-vertex error on all six held-out
+# bodies and lower unseen error than `laplacian` on all six (10.2 mm against 10.8; §13), and on the
+# four faces at 256² 0.0150 against the two hybrid stages' 0.0157 (§13) — its unseen side less plausible than
+# theirs (normals 10.6° off against 8.0°; `laplacian` 11.9°). splat: the
 # statistical filter finds the shape, then 100 unfiltered steps at `none`'s own step size let the
 # splats' images in: +1.1 dB held-out PSNR over `pca` for +0.3 points of geometry error (§14).
-# render's span-first (opt-in): 500 Adam steps on the coefficients under a Gaussian prior, then the
-# default's stages: on the body study 15.0 mm against 16.2, lower on 9 of 12 views and the most
-# plausible unseen side of any fit, but one side view 29.4 -> 53.8 mm (an arm's depth the span
-# resolves wrongly), and faces no better at 1.6x the time (§13) — so not the default.
 PIPELINES: dict[str, dict[str, Pipeline]] = {
     "register": {"default": Pipeline((Settings("pca", GAUSS_NEWTON_ITERATIONS, 0.0, optimizer="gauss-newton",
                                                noise=0.003, landmarks=False),
                                       Settings("hybrid", 200, 0.03, beta=1.0, lam=19.0)),
                                      "the closed-form coefficients, then 200 hybrid steps (docs/studies.md §9)")},
     "render": {"default": Pipeline((Settings("hybrid", 150, 0.05, beta=30.0, lam=19.0, mode_gain=1.0),
-                                    Settings("hybrid", 300, 0.05, beta=10.0, lam=19.0, mode_gain=1.0)),
-                                   "the rendering speed study's schedule"),
-               "span-first": Pipeline((Settings("pca", 500, 0.05, prior=0.1),
-                                       Settings("hybrid", 150, 0.05, beta=30.0, lam=19.0, mode_gain=1.0),
-                                       Settings("hybrid", 300, 0.05, beta=10.0, lam=19.0, mode_gain=1.0)),
-                                      "the span first, then the default's stages (docs/studies.md §13)")},
+                                    Settings("hybrid", 300, 0.05, beta=10.0, lam=19.0, mode_gain=1.0),
+                                    Settings("laplacian", 600, 0.01, lam=19.0)),
+                                   "two hybrid stages, then the Laplacian filter (docs/studies.md §13)")},
     "splat": {"default": Pipeline((Settings("statistical", 300, 0.05, beta=1000.0, mode_gain=1.0),
                                    Settings("none", 100, 0.001)),
                                   "statistical for the shape, then a short unfiltered refinement")},

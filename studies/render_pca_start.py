@@ -1,8 +1,8 @@
 """A span-first start for ``statfit render``: does a pca stage before the default's two hybrid stages
 help faces as it helps bodies (docs/studies.md §13, §17)?
 
-The rendering study's four ICT cases (benchmarks/study_render.py: same identities, expressions and
-views) at 512², each fitted by the shipped default and by the candidate schedules below, side by
+The rendering study's four ICT cases (studies/study_render.py: same identities, expressions and
+views) at 512², each fitted by the render default of session 7 and by the candidate below, side by
 side in one run (one thread per fit, two fits at a time). Error: mean per-vertex distance to the
 ground truth over all vertices / its RMS radius (benchmarks/cases.py ``relative_errors``), as in §11.
 
@@ -28,15 +28,23 @@ from common import ICT_EXPRESSIONS  # noqa: E402
 RESULTS = ROOT / "studies" / "results" / "render_pca_start.json"
 SIZE = 512
 CASE_NAMES = ("jaw-open", "smile", "brow-up", "puff")
-# name (as the results record it) → the render pipeline it runs; the candidate shipped as the opt-in
-# span-first (500 pca steps under the prior 0.1, then the default's two hybrid stages).
-SCHEDULES = {"default (shipped)": "default", "pca 500 (prior 0.1) → default": "span-first"}
+# name (as the results record it) → its stages: the render default of the time (session 7: two hybrid
+# stages) and the candidate shipped then as the opt-in span-first (500 pca steps under the prior 0.1,
+# then those two stages; withdrawn in session 9, docs/studies.md §13). Both from the rigid alignment
+# of the time, whose step on the coefficients was the pose's (ALIGN_SHAPE_LR).
+ALIGN_SHAPE_LR = 0.01
+_HYBRID = {"lam": 19.0, "mode_gain": 1.0}
+SCHEDULES = {"default (shipped)": (("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}),
+                                   ("hybrid", 300, 0.05, {"beta": 10.0, **_HYBRID})),
+             "pca 500 (prior 0.1) → default": (("pca", 500, 0.05, {"prior": 0.1}),
+                                               ("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}),
+                                               ("hybrid", 300, 0.05, {"beta": 10.0, **_HYBRID}))}
 
 
 def stages(name: str):
-    from statfit.inverse_render import render_stages
+    from statfit.settings import Settings
 
-    return render_stages(SCHEDULES[name])
+    return tuple(Settings(method, iterations, lr, **extra) for method, iterations, lr, extra in SCHEDULES[name])
 
 
 def run_case(task: tuple[str, str]) -> dict:
@@ -45,7 +53,10 @@ def run_case(task: tuple[str, str]) -> dict:
     import torch
 
     torch.set_num_threads(1)
+    import statfit.inverse_render
     from study_render import CASES, make_target
+
+    statfit.inverse_render.SHAPE_LR = ALIGN_SHAPE_LR
 
     from statfit.inverse_render import reconstruct
     from statfit.metrics import visible_vertices

@@ -4,7 +4,8 @@ Model: ``statfit model build-makehuman`` (300 modes, 5,000 bodies, seed 0), buil
 cache outside the repository. Targets: held-out MakeHuman bodies (``statfit synth body``: asymmetric,
 with the asym and expression targets and sliders in the tails, none of which the model saw),
 seeds 1..6, each seen from two views (yaw 30° and −60°, pitch 10°). Every method at its tuned
-render setting (``resolve(method, job="render")``), default rigid alignment.
+render setting (``resolve(method, job="render")``), default rigid alignment (its step on the
+coefficients: ``--align-shape-lr``, shipped ``statfit.inverse_render.SHAPE_LR``).
 
 Metrics, per fit, in mm: mean vertex error over all vertices, the vertices seen in the map and the
 rest ("unseen"): raw; "scaled", after the one thing a normal map cannot tell — the body's size at
@@ -16,15 +17,18 @@ side: RMS distance of its vertices to the model's span (the ground truth's own i
 it: held-out bodies are not in the span either) and the mean angle between fitted and true normals
 of the unseen triangles.
 
-Results are appended to ``studies/results/study_body.json`` after every fit (a rerun resumes;
-``study_body_plain_normals.json`` holds the fits before the normal term was antialiased);
+Results are appended after every fit (a rerun resumes) to ``studies/results/study_body_align_shape_lr<X>.json``
+for the alignment's step X on the coefficients, or ``study_body.json`` for the pose's step 0.01 (the
+shipped start until session 9; ``study_body_plain_normals.json``: the fits before the normal term
+was antialiased). Rows named ``default`` are the render default since session 9; the default before
+it is ``candidate:two-hybrid-stages``;
 ``--report`` prints the Markdown tables of docs/studies.md; ``--trace SEED,YAW`` follows one fit's
 error per region (on ``--threads``, 2 unless told; the study's fits run on 1). From the repository root:
 
     PYTHONPATH=. python studies/study_body.py [--size 384] [--methods a,b] [--workers 2] [--report]
     PYTHONPATH=. python studies/study_body.py --trace 1,-60 --methods default [--threads 1]
     PYTHONPATH=. python studies/study_body.py --trace 2,-60 --methods candidate:pca500p-default
-    PYTHONPATH=. python studies/study_body.py --align-shape-lr 0.05 [--report]   # the alignment probe (§13)
+    PYTHONPATH=. python studies/study_body.py --align-shape-lr 0.01 [--report]   # the start until session 9 (§13)
 """
 from __future__ import annotations
 
@@ -43,10 +47,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from common import MAKEHUMAN  # noqa: E402
 
-RESULTS = ROOT / "studies" / "results" / "study_body.json"
-# ``--align-shape-lr X``: the rigid alignment's step on the coefficients set to X
-# (statfit.inverse_render.SHAPE_LR), its rows kept apart in this file.
-PROBE_RESULTS = ROOT / "studies" / "results" / "study_body_align_shape_lr{}.json"
+RESULTS_DIR = ROOT / "studies" / "results"
+# The rows of the rigid alignment's step on the coefficients 0.01 (the shipped start until session 9).
+POSE_STEP_RESULTS = RESULTS_DIR / "study_body.json"
 MODEL_CACHE = Path(os.environ.get("STATFIT_BODY_MODEL", "/tmp/statfit-study-body-300.npz"))
 SEEDS = (1, 2, 3, 4, 5, 6)
 VIEWS = ((30.0, 10.0), (-60.0, 10.0))
@@ -61,6 +64,8 @@ CANDIDATES = {
                                 ("hybrid", 600, 0.05, {"beta": 30.0, **_HYBRID})),
     "stat1500-hybrid1500": (("statistical", 1500, 0.01, {"beta": 1000.0, "mode_gain": 1.0}),
                             ("hybrid", 1500, 0.01, {"beta": 30.0, **_HYBRID})),
+    # The render default until session 9: two hybrid stages (its rows in the results files).
+    "two-hybrid-stages": (("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}), ("hybrid", 300, 0.05, {"beta": 10.0, **_HYBRID})),
     # The span first, each coefficient at its own Adam step (as `pca`, which wins two side views),
     # then the render default's two hybrid stages.
     "pca500-default": (("pca", 500, 0.05, {}), ("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}),
@@ -72,6 +77,30 @@ CANDIDATES = {
     # ... shorter (550 iterations, against the default's 450; faces' ≤ 30 s at 512²).
     "pca250p-h100-h200": (("pca", 250, 0.05, {"prior": 0.1}), ("hybrid", 100, 0.05, {"beta": 30.0, **_HYBRID}),
                           ("hybrid", 200, 0.05, {"beta": 10.0, **_HYBRID})),
+    # From the converged alignment start (``--align-shape-lr 0.05``, §13), where `laplacian` fits
+    # closest: the default's stages with more freedom off the span in the second (β 3, β 1).
+    "h30-150-b3-300": (("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}), ("hybrid", 300, 0.05, {"beta": 3.0, **_HYBRID})),
+    "h30-150-b1-300": (("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}), ("hybrid", 300, 0.05, {"beta": 1.0, **_HYBRID})),
+    # ... then a smaller step to settle (UniformAdam at 0.05 ends where its step lets it).
+    "h30-150-b3-300-b3s-300": (("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}), ("hybrid", 300, 0.05, {"beta": 3.0, **_HYBRID}),
+                               ("hybrid", 300, 0.01, {"beta": 3.0, **_HYBRID})),
+    # ... or the Laplacian filter last (what it fits closer than any span), after β 3, after β 30 alone,
+    # or after the two hybrid stages (600 iterations at lr 0.01 after them: the render default since
+    # session 9, whose rows are `default` in study_body_align_shape_lr0.05.json).
+    "h30-150-b3-300-lap-300": (("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}), ("hybrid", 300, 0.05, {"beta": 3.0, **_HYBRID}),
+                               ("laplacian", 300, 0.01, {"lam": 19.0})),
+    "h30-150-b3-300-lap-600": (("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}), ("hybrid", 300, 0.05, {"beta": 3.0, **_HYBRID}),
+                               ("laplacian", 600, 0.01, {"lam": 19.0})),
+    "h30-150-b3-300-lap-300-laps-300": (("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}),
+                                        ("hybrid", 300, 0.05, {"beta": 3.0, **_HYBRID}),
+                                        ("laplacian", 300, 0.01, {"lam": 19.0}), ("laplacian", 300, 0.003, {"lam": 19.0})),
+    "h30-150-b3-300-b0.3-300": (("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}), ("hybrid", 300, 0.05, {"beta": 3.0, **_HYBRID}),
+                                ("hybrid", 300, 0.01, {"beta": 0.3, **_HYBRID})),
+    "two-hybrid-lap-300": (("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}), ("hybrid", 300, 0.05, {"beta": 10.0, **_HYBRID}),
+                        ("laplacian", 300, 0.01, {"lam": 19.0})),
+    "h30-150-lap-600": (("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}), ("laplacian", 600, 0.01, {"lam": 19.0})),
+    "two-hybrid-lap-300-laps-300": (("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}), ("hybrid", 300, 0.05, {"beta": 10.0, **_HYBRID}),
+                                 ("laplacian", 300, 0.01, {"lam": 19.0}), ("laplacian", 300, 0.003, {"lam": 19.0})),
 }
 
 
@@ -216,7 +245,16 @@ def trace(seed: int, yaw: float, method: str = "default", size: int = 384, every
     print(f"final: all {aligned_error(fit.vertices).mean():.1f} mm after {fit.iterations} iterations")
 
 
-def done_rows(results: Path = RESULTS) -> list[dict]:
+def results_file(align_shape_lr: float | None = None) -> Path:
+    """Where the rows of the rigid alignment's step ``align_shape_lr`` (None: the shipped one) go."""
+    from statfit.inverse_render import SHAPE_LR
+
+    step = SHAPE_LR if align_shape_lr is None else align_shape_lr
+    return POSE_STEP_RESULTS if step == 0.01 else RESULTS_DIR / f"study_body_align_shape_lr{step}.json"
+
+
+def done_rows(results: Path | None = None) -> list[dict]:
+    results = results_file() if results is None else results
     return [json.loads(line) for line in results.read_text().splitlines()] if results.exists() else []
 
 
@@ -270,11 +308,11 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2, help="--trace's thread count (the study's fits: 1)")
     parser.add_argument("--trace", metavar="SEED,YAW", help="trace one fit of --methods' first method instead")
     parser.add_argument("--align-shape-lr", type=float, help="the rigid alignment's step on the coefficients "
-                        "(shipped: the pose's, 0.01); rows go to study_body_align_shape_lr<X>.json")
+                        "(default: the shipped SHAPE_LR); rows go to study_body_align_shape_lr<X>.json")
     args = parser.parse_args()
     if args.align_shape_lr is not None and not 0 < args.align_shape_lr < 10:   # also refuses NaN
         parser.error(f"--align-shape-lr must be a step between 0 and 10, got {args.align_shape_lr}")
-    results = RESULTS if args.align_shape_lr is None else Path(str(PROBE_RESULTS).format(args.align_shape_lr))
+    results = results_file(args.align_shape_lr)
     if args.report:
         print(report(done_rows(results)))
         return

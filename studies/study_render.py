@@ -13,6 +13,7 @@ resumes); ``--report`` prints the table in Markdown. Run from the repository roo
 ``../shared/data/ict-face`` present:
 
     PYTHONPATH=. python studies/study_render.py [--size 256] [--configs a,b] [--cases a,b] [--report]
+    PYTHONPATH=. python studies/study_render.py --align-shape-lr 0.05 [--report]   # the alignment probe (§13)
 """
 from __future__ import annotations
 
@@ -40,6 +41,10 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from common import ICT  # noqa: E402
 RESULTS_DIR = ROOT / "studies" / "results"
 RESULTS = RESULTS_DIR / "study_render.json"
+# ``--align-shape-lr X``: the rigid alignment's step on the coefficients set to X
+# (statfit.inverse_render.SHAPE_LR); its rows in files of their own (parallel runs: --results
+# render_align_shape_lr<X>_<part>.json), which --report merges apart from the shipped start's.
+PROBE_RESULTS = RESULTS_DIR / "render_align_shape_lr{}.json"
 
 
 CASES = (Case("jaw-open", 3, "jawOpen", 0.8, 20.0), Case("smile", 5, "mouthSmile_R", 1.0, -25.0),
@@ -90,7 +95,28 @@ CONFIGS: dict[str, tuple[str, str, dict]] = {
                                                       S("hybrid", 1500, 0.01, beta=30.0, lam=19.0))}),
     "regularized β30 lr 0.003": ("", "", {"stages": (S("regularized", 3000, 0.003, beta=30.0),)}),
     "none lr 0.001": ("", "", {"stages": (S("none", 3000, 0.001),)}),
+    "regularized β10 lr 0.01": ("", "", {"stages": (S("regularized", 3000, 0.01, beta=10.0),)}),
     "default": ("default", "tuned", {}),
+    # Render schedules from the converged alignment start (--align-shape-lr 0.05; docs/studies.md §13).
+    "two hybrid stages (the default until session 9)": ("", "", {"stages": (
+        S("hybrid", 150, 0.05, beta=30.0, lam=19.0, mode_gain=1.0), S("hybrid", 300, 0.05, beta=10.0, lam=19.0, mode_gain=1.0))}),
+    "hybrid β30 150 → β3 300": ("", "", {"stages": (S("hybrid", 150, 0.05, beta=30.0, lam=19.0, mode_gain=1.0),
+                                                   S("hybrid", 300, 0.05, beta=3.0, lam=19.0, mode_gain=1.0))}),
+    "hybrid β30 150 → β3 300 → laplacian 300": ("", "", {"stages": (
+        S("hybrid", 150, 0.05, beta=30.0, lam=19.0, mode_gain=1.0), S("hybrid", 300, 0.05, beta=3.0, lam=19.0, mode_gain=1.0),
+        S("laplacian", 300, 0.01, lam=19.0))}),
+    "hybrid β30 150 → β3 300 → laplacian 600": ("", "", {"stages": (
+        S("hybrid", 150, 0.05, beta=30.0, lam=19.0, mode_gain=1.0), S("hybrid", 300, 0.05, beta=3.0, lam=19.0, mode_gain=1.0),
+        S("laplacian", 600, 0.01, lam=19.0))}),
+    "two hybrid stages → laplacian 300": ("", "", {"stages": (
+        S("hybrid", 150, 0.05, beta=30.0, lam=19.0, mode_gain=1.0), S("hybrid", 300, 0.05, beta=10.0, lam=19.0, mode_gain=1.0),
+        S("laplacian", 300, 0.01, lam=19.0))}),
+    "two hybrid stages → laplacian 600 (the default since session 9)": ("", "", {"stages": (
+        S("hybrid", 150, 0.05, beta=30.0, lam=19.0, mode_gain=1.0), S("hybrid", 300, 0.05, beta=10.0, lam=19.0, mode_gain=1.0),
+        S("laplacian", 600, 0.01, lam=19.0))}),
+    "two hybrid stages → laplacian 300 → lr 0.003 300": ("", "", {"stages": (
+        S("hybrid", 150, 0.05, beta=30.0, lam=19.0, mode_gain=1.0), S("hybrid", 300, 0.05, beta=10.0, lam=19.0, mode_gain=1.0),
+        S("laplacian", 300, 0.01, lam=19.0), S("laplacian", 300, 0.003, lam=19.0))}),
 }
 
 
@@ -138,9 +164,21 @@ def main() -> None:
     parser.add_argument("--report", action="store_true")
     parser.add_argument("--results", type=Path, default=RESULTS,
                         help="Results file (parallel runs write to separate files; --report merges them).")
+    parser.add_argument("--align-shape-lr", type=float, help="the rigid alignment's step on the coefficients "
+                        "(shipped: the pose's, 0.01); rows go to render_align_shape_lr<X>.json")
     args = parser.parse_args()
+    if args.align_shape_lr is not None:
+        if not 0 < args.align_shape_lr < 10:   # also refuses NaN
+            parser.error(f"--align-shape-lr must be a step between 0 and 10, got {args.align_shape_lr}")
+        import statfit.inverse_render
+
+        statfit.inverse_render.SHAPE_LR = args.align_shape_lr
+        if args.results == RESULTS:
+            args.results = Path(str(PROBE_RESULTS).format(args.align_shape_lr))
     if args.report:
-        print(report([r for path in sorted(RESULTS_DIR.glob("study_render*.json")) for r in load_results(path)]))
+        pattern = "study_render*.json" if args.align_shape_lr is None else f"render_align_shape_lr{args.align_shape_lr}*.json"
+        paths = sorted(RESULTS_DIR.glob(pattern))
+        print(report([r for path in paths for r in load_results(path)]))
         return
     torch.set_num_threads(args.threads)
     model = load_model(ICT / "ict_face_identity.npz")

@@ -141,8 +141,9 @@ def test_a_body_from_one_normal_map_on_the_command_line(tmp_path, capsys):
     assert code == 2 and "not in the model's topology" in err and not (tmp_path / "x.exr").exists()
 
 
-def _study_fit(method: str, yaw: float, size: int, iterations: int | None = None) -> dict:
-    """The body study's row of one fit of held-out body 4 from ``yaw`` (pitch 10°)."""
+def _study_fit(method: str, yaw: float, size: int, iterations: int | None = None, seed: int = 4,
+               align_shape_lr: float | None = None) -> dict:
+    """The body study's row of one fit of held-out body ``seed`` from ``yaw`` (pitch 10°)."""
     import torch
 
     from common import ROOT
@@ -150,19 +151,34 @@ def _study_fit(method: str, yaw: float, size: int, iterations: int | None = None
     import study_body
 
     torch.set_num_threads(1)
-    return study_body.run_case((4, yaw, 10.0, method, size), iterations)
+    return study_body.run_case((seed, yaw, 10.0, method, size), iterations, align_shape_lr)
+
+
+@pytest.mark.slow
+@needs_data
+def test_the_alignment_fits_a_small_bodys_size(study_model):
+    """Body 2, the study's smallest (1.21 m; the model's mean 1.74), from the front at 160²: after
+    the rigid alignment (and one iteration) the fit is 2× closer to the truth, size and place
+    included, with the coefficients at their own step than at the pose's (measured 50 against
+    106 mm): at the pose's step no coefficient moves more than ~2 standard deviations in the
+    alignment's 200 steps (docs/studies.md §13)."""
+    from conftest import run_two_at_a_time
+
+    raw = {name: row["raw"]["all"] for name, row in run_two_at_a_time(_study_fit, {
+        "shipped": ("default", 30.0, 160, 1, 2), "pose's step": ("default", 30.0, 160, 1, 2, 0.01)}).items()}
+    assert raw["shipped"] < 0.6 * raw["pose's step"], raw
 
 
 @pytest.fixture(scope="module")
 def study_fits(study_model) -> dict[str, dict]:
-    """The slow body tests' four fits of body 4, two at a time (the longest first): `span-first` and
-    the default from the side at 384²; `statistical` and `laplacian` from the front at 160², 1,000
-    iterations."""
+    """The slow body tests' four fits of body 4 from the front (yaw 30°) at 160², two at a time (the
+    longest first): `laplacian` at its own 3,000 iterations and the default; `statistical` and
+    `laplacian` at 1,000 iterations."""
     from conftest import run_two_at_a_time
 
-    return run_two_at_a_time(_study_fit, {"span-first": ("span-first", -60.0, 384), "default": ("default", -60.0, 384),
-                                          "statistical": ("statistical", 30.0, 160, 1000),
-                                          "laplacian": ("laplacian", 30.0, 160, 1000)})
+    return run_two_at_a_time(_study_fit, {"laplacian": ("laplacian", 30.0, 160), "default": ("default", 30.0, 160),
+                                          "statistical 1000": ("statistical", 30.0, 160, 1000),
+                                          "laplacian 1000": ("laplacian", 30.0, 160, 1000)})
 
 
 @pytest.mark.slow
@@ -170,18 +186,20 @@ def study_fits(study_model) -> dict[str, dict]:
 def test_the_statistical_filter_keeps_the_unseen_side_plausible(study_fits):
     """The paper's body claim, on a body the model never saw: the Laplacian filter fits the visible
     side and bends the unseen one; the statistical filter keeps it close to a body's shape (mean
-    normal angle on the unseen side; study: 8.5° vs 18.2° over 12 fits at 384² and 3000 iterations; at
-    the 160² and 1000 iterations used here to keep the suite short, 10.2° vs 16.7° before the normal
-    term was antialiased)."""
-    angles = {m: study_fits[m]["normal_angle_unseen_deg"] for m in ("statistical", "laplacian")}
+    normal angle on the unseen side; study: 7.2° vs 11.9° over 12 fits at 384² and 3000 iterations; at
+    the 160² and 1000 iterations used here to keep the suite short, 8.1° vs 11.6°)."""
+    angles = {m: study_fits[f"{m} 1000"]["normal_angle_unseen_deg"] for m in ("statistical", "laplacian")}
     assert angles["statistical"] < 0.75 * angles["laplacian"], angles
 
 
 @pytest.mark.slow
 @needs_data
-def test_span_first_places_the_side_views_limbs_the_default_misses(study_fits):
-    """`render --method span-first` on the body study's case where the span matters most: body 4
-    seen from the side (yaw −60°, 384²), whose arms the default leaves misplaced (study: 24.9 mm,
-    span-first 12.0; docs/studies.md §13)."""
-    errors = {m: study_fits[m]["aligned"]["all"] for m in ("default", "span-first")}
-    assert errors["span-first"] < 0.7 * errors["default"], errors
+def test_the_default_is_closer_than_laplacian_seen_and_unseen(study_fits):
+    """Issue 14's target on one of its bodies: the render default (two hybrid stages, then the
+    Laplacian filter, from the alignment's fitted coefficients) is closer to the truth than
+    `laplacian` at its own tuned setting, over all vertices and over those the map does not show
+    (study: lower on all six bodies, 10.2 mm against 10.8; here, at 160², 17.2 against 20.7 and
+    18.2 against 22.0; docs/studies.md §13)."""
+    default, laplacian = study_fits["default"]["aligned"], study_fits["laplacian"]["aligned"]
+    assert default["all"] < 0.95 * laplacian["all"], (default, laplacian)
+    assert default["unseen"] < 0.95 * laplacian["unseen"], (default, laplacian)

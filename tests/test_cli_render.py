@@ -213,17 +213,18 @@ def test_render_help_teaches(capsys):
     assert code == 0 and "--normal-space" in out and "--preview" in out and "--align" in out
 
 
-def test_span_first_runs_its_three_stages_from_the_command_line(normal_files, tmp_path, capsys):
-    """render's opt-in pipeline: the coefficients under their prior, then the default's two stages
-    (the log's header lists them; register does not offer it)."""
+def test_the_render_default_runs_its_three_stages_from_the_command_line(normal_files, tmp_path, capsys):
+    """render's default: two hybrid stages, then the Laplacian filter, its iterations split in
+    proportion (150 : 300 : 600) when --iterations sets the total (the log's header lists them)."""
     exr, camera, _ = normal_files
     log = tmp_path / "fit.jsonl"
-    code, out, err = run(["render", str(exr), "--camera", str(camera), "--method", "span-first", "--out",
-                          str(tmp_path / "fit.ply"), "--log", str(log), "--json", *FAST], capsys)
+    code, out, err = run(["render", str(exr), "--camera", str(camera), "--out", str(tmp_path / "fit.ply"),
+                          "--log", str(log), "--json", *FAST], capsys)
     assert code == 0, err
     assert json.loads(out)["iterations"] == 40
     stages = json.loads(log.read_text().splitlines()[0])["stages"]
-    assert [(s["method"], s["prior"] > 0) for s in stages] == [("pca", True), ("hybrid", False), ("hybrid", False)]
-    code, _, err = run(["register", str(tmp_path / "fit.ply"), "--method", "span-first", "--out",
+    assert [s["method"] for s in stages] == ["hybrid", "hybrid", "laplacian"]
+    assert [s["beta"] for s in stages[:2]] == [30.0, 10.0] and sum(s["iterations"] for s in stages) == 40
+    code, _, err = run(["render", str(exr), "--camera", str(camera), "--method", "span-first", "--out",
                         str(tmp_path / "r.ply")], capsys)
-    assert code == 2 and "unknown method 'span-first' for register" in err and not (tmp_path / "r.ply").exists()
+    assert code == 2 and "span-first" in err and not (tmp_path / "r.ply").exists()   # withdrawn in session 9

@@ -1,9 +1,14 @@
 """End to end on the real ICT head model: one normal map (yaw 20°) of an identity sample plus the
 jawOpen expression (outside the identity model); every fit is scored against the ground truth over
-all vertices. What is asserted is what the rendering study measured at 256² (docs/studies.md §5:
-paper statistical 0.0484, paper laplacian 0.0590); the test renders 128² to keep the suite short,
-where the same four fits measured 0.0548 and 0.0619, tuned pca 0.0453, the default 0.0397 and the
-template 0.1448 (the fits take a third of the 256² time).
+all vertices. The test renders 128² to keep the suite short (the fits take a third of the 256²
+time), where the four fits measured (session 9, the rigid alignment fitting the coefficients at its
+own step): paper statistical 0.0502, paper laplacian 0.0470, tuned pca 0.0452, the default 0.0421,
+the template 0.1448.
+
+From that converged start the paper's Laplacian filter is the closer of the paper's two here (at
+the pose's step, until session 9: statistical 0.0548, laplacian 0.0619), and closer on average over
+the rendering study's four faces at 256² (0.0183 against 0.0194; docs/studies.md §13): the paper's
+comparison is no longer asserted, only that both fit what the model lacks.
 
 The four 3000-iteration fits run two at a time, one thread each: at 256² a fit gains little from a
 second thread, so this halves the wall time on a 2-core machine.
@@ -54,9 +59,9 @@ def errors(ict_model):
     return run_two_at_a_time(fit_error, RUNS) | {"template": fit_error("template", "")}
 
 
-def test_paper_statistical_beats_paper_laplacian(errors):
-    assert errors["paper statistical"] < errors["paper laplacian"], errors
+def test_the_papers_filters_both_fit_the_jaw_the_model_lacks(errors):
     assert errors["paper statistical"] < 0.5 * errors["template"], errors
+    assert errors["paper laplacian"] < 0.5 * errors["template"], errors
 
 
 def test_default_beats_every_method_it_was_compared_with(errors):
