@@ -197,7 +197,7 @@ class Pipeline:
 # iterations of the Laplacian filter (lr 0.01), which fits the detail no span holds. From the rigid
 # alignment's converged coefficients (SHAPE_LR) it is the lowest all-vertex error on all six held-out
 # bodies and lower unseen error than `laplacian` on all six (10.2 mm against 10.8; §13), and on the
-# four faces at 256² 0.0150 against the two hybrid stages' 0.0157 (§13) — its unseen side less plausible than
+# four faces at 512² 0.0121 against the two hybrid stages' 0.0150 (§13) — its unseen side less plausible than
 # theirs (normals 10.6° off against 8.0°; `laplacian` 11.9°). splat: the
 # statistical filter finds the shape, then 100 unfiltered steps at `none`'s own step size let the
 # splats' images in: +1.1 dB held-out PSNR over `pca` for +0.3 points of geometry error (§14).

@@ -55,6 +55,10 @@ def S(method: str, iterations: int, lr: float, **kw) -> Settings:
     return Settings(method, iterations, lr, **kw)
 
 
+# The render default until session 9: β 30 for 150 iterations, then β 10 for 300 (§11).
+_TWO_HYBRID = (S("hybrid", 150, 0.05, beta=30.0, lam=19.0, mode_gain=1.0),
+               S("hybrid", 300, 0.05, beta=10.0, lam=19.0, mode_gain=1.0))
+
 # name → (method, preset, keyword arguments of reconstruct)
 CONFIGS: dict[str, tuple[str, str, dict]] = {
     "paper/statistical": ("statistical", "paper", {}),
@@ -98,25 +102,10 @@ CONFIGS: dict[str, tuple[str, str, dict]] = {
     "regularized β10 lr 0.01": ("", "", {"stages": (S("regularized", 3000, 0.01, beta=10.0),)}),
     "default": ("default", "tuned", {}),
     # Render schedules from the converged alignment start (--align-shape-lr 0.05; docs/studies.md §13).
-    "two hybrid stages (the default until session 9)": ("", "", {"stages": (
-        S("hybrid", 150, 0.05, beta=30.0, lam=19.0, mode_gain=1.0), S("hybrid", 300, 0.05, beta=10.0, lam=19.0, mode_gain=1.0))}),
-    "hybrid β30 150 → β3 300": ("", "", {"stages": (S("hybrid", 150, 0.05, beta=30.0, lam=19.0, mode_gain=1.0),
-                                                   S("hybrid", 300, 0.05, beta=3.0, lam=19.0, mode_gain=1.0))}),
-    "hybrid β30 150 → β3 300 → laplacian 300": ("", "", {"stages": (
-        S("hybrid", 150, 0.05, beta=30.0, lam=19.0, mode_gain=1.0), S("hybrid", 300, 0.05, beta=3.0, lam=19.0, mode_gain=1.0),
-        S("laplacian", 300, 0.01, lam=19.0))}),
-    "hybrid β30 150 → β3 300 → laplacian 600": ("", "", {"stages": (
-        S("hybrid", 150, 0.05, beta=30.0, lam=19.0, mode_gain=1.0), S("hybrid", 300, 0.05, beta=3.0, lam=19.0, mode_gain=1.0),
-        S("laplacian", 600, 0.01, lam=19.0))}),
-    "two hybrid stages → laplacian 300": ("", "", {"stages": (
-        S("hybrid", 150, 0.05, beta=30.0, lam=19.0, mode_gain=1.0), S("hybrid", 300, 0.05, beta=10.0, lam=19.0, mode_gain=1.0),
-        S("laplacian", 300, 0.01, lam=19.0))}),
+    "two hybrid stages (the default until session 9)": ("", "", {"stages": _TWO_HYBRID}),
+    "two hybrid stages → laplacian 300": ("", "", {"stages": (*_TWO_HYBRID, S("laplacian", 300, 0.01, lam=19.0))}),
     "two hybrid stages → laplacian 600 (the default since session 9)": ("", "", {"stages": (
-        S("hybrid", 150, 0.05, beta=30.0, lam=19.0, mode_gain=1.0), S("hybrid", 300, 0.05, beta=10.0, lam=19.0, mode_gain=1.0),
-        S("laplacian", 600, 0.01, lam=19.0))}),
-    "two hybrid stages → laplacian 300 → lr 0.003 300": ("", "", {"stages": (
-        S("hybrid", 150, 0.05, beta=30.0, lam=19.0, mode_gain=1.0), S("hybrid", 300, 0.05, beta=10.0, lam=19.0, mode_gain=1.0),
-        S("laplacian", 300, 0.01, lam=19.0), S("laplacian", 300, 0.003, lam=19.0))}),
+        *_TWO_HYBRID, S("laplacian", 600, 0.01, lam=19.0))}),
 }
 
 
@@ -157,7 +146,7 @@ def report(results: list[dict]) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--size", type=int, default=256)
+    parser.add_argument("--size", type=int, default=256, help="the maps' size (and --report's rows)")
     parser.add_argument("--configs", default=",".join(CONFIGS))
     parser.add_argument("--cases", default=",".join(c.name for c in CASES))
     parser.add_argument("--threads", type=int, default=1)
@@ -178,7 +167,7 @@ def main() -> None:
     if args.report:
         pattern = "study_render*.json" if args.align_shape_lr is None else f"render_align_shape_lr{args.align_shape_lr}*.json"
         paths = sorted(RESULTS_DIR.glob(pattern))
-        print(report([r for path in paths for r in load_results(path)]))
+        print(report([r for path in paths for r in load_results(path) if r["size"] == args.size]))
         return
     torch.set_num_threads(args.threads)
     model = load_model(ICT / "ict_face_identity.npz")
