@@ -8,12 +8,13 @@ default rigid (pose + shape) alignment unless the configuration says otherwise. 
 per-vertex error over all vertices, visible vertices (those of triangles seen in the target view)
 and the rest, relative to the ground truth's RMS radius.
 
-Results are appended to ``studies/results/study_render.json`` after every fit (the run
-resumes); ``--report`` prints the table in Markdown. Run from the repository root with
+Results are appended to ``studies/results/render_align_shape_lr0.05.json`` after every fit (the
+run resumes; ``study_render*.json``: §5's rows, from the alignment before session 9,
+``--align-shape-lr 0.01``); ``--report`` prints the table in Markdown. Run from the repository root with
 ``../shared/data/ict-face`` present:
 
     PYTHONPATH=. python studies/study_render.py [--size 256] [--configs a,b] [--cases a,b] [--report]
-    PYTHONPATH=. python studies/study_render.py --align-shape-lr 0.05 [--report]   # the alignment probe (§13)
+    PYTHONPATH=. python studies/study_render.py --align-shape-lr 0.01 [--report]   # §5's start
 """
 from __future__ import annotations
 
@@ -40,11 +41,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from common import ICT  # noqa: E402
 RESULTS_DIR = ROOT / "studies" / "results"
-RESULTS = RESULTS_DIR / "study_render.json"
-# ``--align-shape-lr X``: the rigid alignment's step on the coefficients set to X
-# (statfit.inverse_render.SHAPE_LR); its rows in files of their own (parallel runs: --results
-# render_align_shape_lr<X>_<part>.json), which --report merges apart from the shipped start's.
-PROBE_RESULTS = RESULTS_DIR / "render_align_shape_lr{}.json"
+# Rows per rigid-alignment step on the coefficients (``--align-shape-lr X``, shipped
+# statfit.inverse_render.SHAPE_LR): study_render*.json for 0.01 (the start until session 9, §5),
+# render_align_shape_lr<X>*.json otherwise (parallel runs: --results <that stem>_<part>.json).
 
 
 CASES = (Case("jaw-open", 3, "jawOpen", 0.8, 20.0), Case("smile", 5, "mouthSmile_R", 1.0, -25.0),
@@ -123,7 +122,7 @@ def errors(fit: np.ndarray, gt: np.ndarray, visible: np.ndarray) -> dict[str, fl
     return {"all": float(err.mean()), "visible": float(err[visible].mean()), "hidden": float(err[~visible].mean())}
 
 
-def load_results(path: Path = RESULTS) -> list[dict]:
+def load_results(path: Path) -> list[dict]:
     return json.loads(path.read_text()) if path.exists() else []
 
 
@@ -151,22 +150,22 @@ def main() -> None:
     parser.add_argument("--cases", default=",".join(c.name for c in CASES))
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--report", action="store_true")
-    parser.add_argument("--results", type=Path, default=RESULTS,
-                        help="Results file (parallel runs write to separate files; --report merges them).")
+    parser.add_argument("--results", type=Path, help="Results file (default: the alignment step's own; parallel "
+                        "runs write to separate files of its name; --report merges them).")
     parser.add_argument("--align-shape-lr", type=float, help="the rigid alignment's step on the coefficients "
-                        "(shipped: the pose's, 0.01); rows go to render_align_shape_lr<X>.json")
+                        "(default: the shipped SHAPE_LR); 0.01, the start until session 9, is §5's")
     args = parser.parse_args()
-    if args.align_shape_lr is not None:
-        if not 0 < args.align_shape_lr < 10:   # also refuses NaN
-            parser.error(f"--align-shape-lr must be a step between 0 and 10, got {args.align_shape_lr}")
-        import statfit.inverse_render
+    if args.align_shape_lr is not None and not 0 < args.align_shape_lr < 10:   # also refuses NaN
+        parser.error(f"--align-shape-lr must be a step between 0 and 10, got {args.align_shape_lr}")
+    import statfit.inverse_render
 
+    if args.align_shape_lr is not None:
         statfit.inverse_render.SHAPE_LR = args.align_shape_lr
-        if args.results == RESULTS:
-            args.results = Path(str(PROBE_RESULTS).format(args.align_shape_lr))
+    step = statfit.inverse_render.SHAPE_LR
+    stem = "study_render" if step == 0.01 else f"render_align_shape_lr{step}"
+    args.results = args.results or RESULTS_DIR / f"{stem}.json"
     if args.report:
-        pattern = "study_render*.json" if args.align_shape_lr is None else f"render_align_shape_lr{args.align_shape_lr}*.json"
-        paths = sorted(RESULTS_DIR.glob(pattern))
+        paths = sorted(RESULTS_DIR.glob(f"{stem}*.json"))
         print(report([r for path in paths for r in load_results(path) if r["size"] == args.size]))
         return
     torch.set_num_threads(args.threads)
