@@ -56,6 +56,15 @@ VIEWS = ((30.0, 10.0), (-60.0, 10.0))
 METHODS = ("default", "hybrid", "statistical", "laplacian", "pca", "regularized", "none")
 # Candidate render schedules for bodies (``--candidates``), reported apart from the methods.
 _HYBRID = {"lam": 19.0, "mode_gain": 1.0}
+_B30 = ("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID})     # the two hybrid stages of the render
+_B10 = ("hybrid", 300, 0.05, {"beta": 10.0, **_HYBRID})     # default until session 9
+_B3 = ("hybrid", 300, 0.05, {"beta": 3.0, **_HYBRID})
+
+
+def _laplacian(iterations: int, lr: float = 0.01) -> tuple:
+    return ("laplacian", iterations, lr, {"lam": 19.0})
+
+
 CANDIDATES = {
     "hybrid-b30-900": (("hybrid", 900, 0.05, {"beta": 30.0, **_HYBRID}),),
     "stat300-hybrid600": (("statistical", 300, 0.05, {"beta": 1000.0, "mode_gain": 1.0}),
@@ -65,42 +74,32 @@ CANDIDATES = {
     "stat1500-hybrid1500": (("statistical", 1500, 0.01, {"beta": 1000.0, "mode_gain": 1.0}),
                             ("hybrid", 1500, 0.01, {"beta": 30.0, **_HYBRID})),
     # The render default until session 9: two hybrid stages (its rows in the results files).
-    "two-hybrid-stages": (("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}), ("hybrid", 300, 0.05, {"beta": 10.0, **_HYBRID})),
+    "two-hybrid-stages": (_B30, _B10),
     # The span first, each coefficient at its own Adam step (as `pca`, which wins two side views),
     # then the render default's two hybrid stages.
-    "pca500-default": (("pca", 500, 0.05, {}), ("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}),
-                       ("hybrid", 300, 0.05, {"beta": 10.0, **_HYBRID})),
+    "pca500-default": (("pca", 500, 0.05, {}), _B30, _B10),
     # ... with a Gaussian prior on the coefficients (0.1 · mean(c²)): body 4's side view diverged without.
-    # Shipped as the opt-in `render --method span-first` (docs/studies.md §13).
-    "pca500p-default": (("pca", 500, 0.05, {"prior": 0.1}), ("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}),
-                        ("hybrid", 300, 0.05, {"beta": 10.0, **_HYBRID})),
+    # Shipped as the opt-in `render --method span-first` in sessions 7–8 (docs/studies.md §13).
+    "pca500p-default": (("pca", 500, 0.05, {"prior": 0.1}), _B30, _B10),
     # ... shorter (550 iterations, against the default's 450; faces' ≤ 30 s at 512²).
     "pca250p-h100-h200": (("pca", 250, 0.05, {"prior": 0.1}), ("hybrid", 100, 0.05, {"beta": 30.0, **_HYBRID}),
                           ("hybrid", 200, 0.05, {"beta": 10.0, **_HYBRID})),
     # From the converged alignment start (``--align-shape-lr 0.05``, §13), where `laplacian` fits
     # closest: the default's stages with more freedom off the span in the second (β 3, β 1).
-    "h30-150-b3-300": (("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}), ("hybrid", 300, 0.05, {"beta": 3.0, **_HYBRID})),
-    "h30-150-b1-300": (("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}), ("hybrid", 300, 0.05, {"beta": 1.0, **_HYBRID})),
+    "h30-150-b3-300": (_B30, _B3),
+    "h30-150-b1-300": (_B30, ("hybrid", 300, 0.05, {"beta": 1.0, **_HYBRID})),
     # ... then a smaller step to settle (UniformAdam at 0.05 ends where its step lets it).
-    "h30-150-b3-300-b3s-300": (("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}), ("hybrid", 300, 0.05, {"beta": 3.0, **_HYBRID}),
-                               ("hybrid", 300, 0.01, {"beta": 3.0, **_HYBRID})),
+    "h30-150-b3-300-b3s-300": (_B30, _B3, ("hybrid", 300, 0.01, {"beta": 3.0, **_HYBRID})),
+    "h30-150-b3-300-b0.3-300": (_B30, _B3, ("hybrid", 300, 0.01, {"beta": 0.3, **_HYBRID})),
     # ... or the Laplacian filter last (what it fits closer than any span), after β 3, after β 30 alone,
     # or after the two hybrid stages (600 iterations at lr 0.01 after them: the render default since
     # session 9, whose rows are `default` in study_body_align_shape_lr0.05.json).
-    "h30-150-b3-300-lap-300": (("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}), ("hybrid", 300, 0.05, {"beta": 3.0, **_HYBRID}),
-                               ("laplacian", 300, 0.01, {"lam": 19.0})),
-    "h30-150-b3-300-lap-600": (("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}), ("hybrid", 300, 0.05, {"beta": 3.0, **_HYBRID}),
-                               ("laplacian", 600, 0.01, {"lam": 19.0})),
-    "h30-150-b3-300-lap-300-laps-300": (("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}),
-                                        ("hybrid", 300, 0.05, {"beta": 3.0, **_HYBRID}),
-                                        ("laplacian", 300, 0.01, {"lam": 19.0}), ("laplacian", 300, 0.003, {"lam": 19.0})),
-    "h30-150-b3-300-b0.3-300": (("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}), ("hybrid", 300, 0.05, {"beta": 3.0, **_HYBRID}),
-                                ("hybrid", 300, 0.01, {"beta": 0.3, **_HYBRID})),
-    "two-hybrid-lap-300": (("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}), ("hybrid", 300, 0.05, {"beta": 10.0, **_HYBRID}),
-                        ("laplacian", 300, 0.01, {"lam": 19.0})),
-    "h30-150-lap-600": (("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}), ("laplacian", 600, 0.01, {"lam": 19.0})),
-    "two-hybrid-lap-300-laps-300": (("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRID}), ("hybrid", 300, 0.05, {"beta": 10.0, **_HYBRID}),
-                                 ("laplacian", 300, 0.01, {"lam": 19.0}), ("laplacian", 300, 0.003, {"lam": 19.0})),
+    "h30-150-b3-300-lap-300": (_B30, _B3, _laplacian(300)),
+    "h30-150-b3-300-lap-600": (_B30, _B3, _laplacian(600)),
+    "h30-150-b3-300-lap-300-laps-300": (_B30, _B3, _laplacian(300), _laplacian(300, 0.003)),
+    "h30-150-lap-600": (_B30, _laplacian(600)),
+    "two-hybrid-lap-300": (_B30, _B10, _laplacian(300)),
+    "two-hybrid-lap-300-laps-300": (_B30, _B10, _laplacian(300), _laplacian(300, 0.003)),
 }
 
 
