@@ -29,7 +29,7 @@ import numpy as np
 from common import ICT_EXPRESSIONS, ICT_MODEL, Section, markdown_table
 
 POSE_SCANS, QUICK_POSE_SCANS = 50, 4
-CLUTTER_SCANS, QUICK_CLUTTER_SCANS = 6, 2
+CLUTTER_SCANS, QUICK_CLUTTER_SCANS = 18, 2
 POSE_METHOD = "pca"
 CLUTTER_METHODS, QUICK_CLUTTER_METHODS = ("pca", "default"), ("pca",)
 INNER = slice(17, 68)

@@ -20,9 +20,13 @@ back to front, turned by 90°). So:
    (OUTLIER_SIGMAS), on more points: a pose the first modes could not explain is what the fit,
    which cannot turn the model, would keep. Hair would tilt it: the modes bulge the head towards a
    surface 5–9 mm over the scalp. So, for a model with a face (a ``face`` region or landmarks),
-   the polish runs three times: on the whole head, then on the face alone (around its landmarks,
-   POSE_FACE_RADIUS, where hair cannot reach), and last on every point except those lying
-   :data:`statfit.hair.HAIR_OFFSET` beyond the face fit's scalp.
+   the polish runs three times: on the whole head; then where hair cannot reach — on the face
+   alone (around its landmarks, POSE_FACE_RADIUS), or, when the first pass left more than
+   1 − CLUTTER_MATCHED of the points unexplained (clutter), on everything but the scalp
+   (:func:`statfit.model.scalp_triangles`: the face, the ears, the jaw and the sides below the
+   hairline, a longer lever for the head's tilt than the face alone); and last on every point
+   except those lying :data:`statfit.hair.HAIR_OFFSET` beyond the second pass's scalp and, with
+   clutter, those on the scalp.
 6. **Score**: a truncated residual — each point's squared distance capped at TOLERANCE², a point
    whose normal disagrees counting as the cap — over the cap: 0 is a perfect fit, 1 nothing
    matched. The runner-up (another pose ≥ DISTINCT_DEGREES away) within AMBIGUITY of the best
@@ -47,8 +51,8 @@ from statfit.closest import ClosestPointQuery
 from statfit.errors import StatfitError
 from statfit.frame import Frame
 from statfit.gauss_newton import fit_coefficients, mode_directions
-from statfit.hair import MAX_HAIR_SHARE, outside_off_the_face
-from statfit.model import StatModel, face_triangles
+from statfit.hair import hair_suspects
+from statfit.model import StatModel, face_triangles, scalp_triangles
 from statfit.objectives.scan import ScanObjective
 from statfit.scan import Scan
 
@@ -303,14 +307,15 @@ def estimate_pose(model: StatModel, scan: Scan, seed: int = 0) -> PoseEstimate:
     start, hair = coarse_pose, None
     if (face := face_triangles(model, POSE_FACE_RADIUS)) is not None:   # step 5: head, face, all but hair
         lead = polish[:LEAD_SUBSAMPLE]
-        start = _polish(matcher, mean, every_mode, points[lead], scan.normals[lead], start)[0]
+        start, _, head_matched, _ = _polish(matcher, mean, every_mode, points[lead], scan.normals[lead], start)
+        scalp = scalp_triangles(model) if head_matched < CLUTTER_MATCHED else None    # clutter: hair can be there
         start, _, _, face_fit = _polish(matcher, mean, every_mode, points[lead], scan.normals[lead], start,
-                                        region=face)
+                                        region=face if scalp is None else ~scalp)
         face_shape = mean + (every_mode @ torch.as_tensor(face_fit)).numpy()
-        hair = outside_off_the_face(matcher.query, torch.as_tensor(face_shape),
-                                    torch.as_tensor(start.inverse_apply(points[polish])), torch.as_tensor(face)).numpy()
-        if hair.mean() > MAX_HAIR_SHARE:   # not a head under hair: fit every point
-            hair = None
+        hair = hair_suspects(matcher.query, torch.as_tensor(face_shape),
+                             torch.as_tensor(start.inverse_apply(points[polish])), torch.as_tensor(face),
+                             None if scalp is None else torch.as_tensor(scalp))
+        hair = None if hair is None else hair.numpy()    # None: not a head under hair, fit every point
     transform, polished_score, matched, coefficients = _polish(matcher, mean, every_mode, points[polish],
                                                                scan.normals[polish], start,
                                                                used=None if hair is None else ~hair)

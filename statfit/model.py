@@ -184,6 +184,33 @@ def face_triangles(model: StatModel, radius: float = FACE_RADIUS) -> np.ndarray 
     return inside[model.faces].all(axis=1)
 
 
+# Where hair can lie, in RMS radii of the template (ICT: 1.4 and 2.9 cm): above the face's highest
+# landmark by SCALP_ABOVE, or behind its deepest by SCALP_BEHIND (down to its lowest). Hair over
+# the scalp is what tilts a cluttered scan's pose and pulls its fit (docs/studies.md §16, "The
+# scalp as a region"); 0.3 above or 0.8 behind left enough hair in to tilt the pose again.
+SCALP_ABOVE = 0.15
+SCALP_BEHIND = 0.3
+
+
+def scalp_triangles(model: StatModel) -> np.ndarray | None:
+    """(F,) bool: the triangles hair can cover — a vertex SCALP_ABOVE radii above the face's
+    highest point, or SCALP_BEHIND behind its deepest and above its middle height (the model's +y up, +z
+    its face's direction, as FLAME, ICT, BFM and the embedded model are built). The face is the
+    model's ``face`` region, else its landmarks (which must then be the face's: a landmark on the
+    crown or an ear would move the scalp); None for a model with neither."""
+    if model.regions and "face" in model.regions:
+        anchors = model.template[region_vertices(model, "face")]
+    elif model.landmarks is not None:
+        anchors = model.template[model.landmarks]
+    else:
+        return None
+    frame = Frame.of(model.template)
+    up, forward = model.template[:, 1], model.template[:, 2]
+    above = up > anchors[:, 1].max() + SCALP_ABOVE * frame.scale
+    behind = (forward < anchors[:, 2].min() - SCALP_BEHIND * frame.scale) & (up > anchors[:, 1].mean())
+    return (above | behind)[model.faces].any(axis=1)
+
+
 # Largest bounding-box side of a head (0.1–0.5 m) or a body (1–2.5 m) in each unit.
 _UNIT_RANGES = (("metres (head-sized)", 0.1, 0.5), ("metres (body-sized)", 1.0, 2.5),
                 ("centimetres (head-sized)", 10.0, 50.0), ("millimetres (head-sized)", 100.0, 500.0))

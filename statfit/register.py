@@ -15,10 +15,10 @@ from statfit.errors import StatfitError, StatfitWarning
 from statfit.fit import StageTimer
 from statfit.frame import Frame
 from statfit.global_align import CLUTTER_MATCHED, DISTINCT_DEGREES, estimate_pose, refine_pose
-from statfit.hair import MAX_HAIR_SHARE, hair_points
+from statfit.hair import hair_points
 from statfit.methods import landmark_weight as method_landmark_weight, resolve
 from statfit.settings import FitSpace, Settings
-from statfit.model import StatModel, face_triangles, region_triangles
+from statfit.model import StatModel, face_triangles, region_triangles, scalp_triangles
 from statfit.objectives.landmarks import LandmarkObjective, WithLandmarks
 from statfit.objectives.scan import ScanObjective
 from statfit.scan import Scan
@@ -141,8 +141,9 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
     :func:`statfit.methods.landmark_weight`; :mod:`statfit.objectives.landmarks`).
     ``clutter`` turns on the data term's rules for points off the template (normals, robust
     distance; :mod:`statfit.objectives.scan`) and, without a ``region``, leaves out the points a fit
-    of the model's face alone finds to be hair (:mod:`statfit.hair`: hair passes every rule), or
-    keeps the data term to the face (:func:`face_triangles`) when most of the scan is out there;
+    of the model's face alone finds to be hair and those nearest its scalp (:mod:`statfit.hair`:
+    hair passes every rule), or keeps the data term to the face (:func:`face_triangles`) when most
+    of the scan is out there;
     ``None``: on when the automatic alignment found more than 1 − CLUTTER_MATCHED of the points
     unexplained by its fit with every mode.
     ``on_snapshot(iteration, vertices)`` receives the current vertices (N, 3), in the scan's frame,
@@ -185,12 +186,13 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
         hair_share = None
         if clutter and region is None and (face := face_triangles(model)) is not None:
             face = torch.as_tensor(face, device=torch_device)
-            hair = hair_points(space, query, fit_points, fit_normals, face, trim)
-            hair_share = float(hair.double().mean())
-            if hair_share <= MAX_HAIR_SHARE:    # fit everything but the hair
-                fit_points, fit_normals = fit_points[~hair], fit_normals[~hair]
-            else:                               # no head under that much: fit the face alone
+            scalp = torch.as_tensor(scalp_triangles(model), device=torch_device)
+            hair = hair_points(space, query, fit_points, fit_normals, face, trim, scalp)
+            if hair is None:                    # no head under that much: fit the face alone
                 region_faces = face
+            else:                               # fit everything but the hair
+                hair_share = float(hair.double().mean())
+                fit_points, fit_normals = fit_points[~hair], fit_normals[~hair]
         if pose is not None:
             pose = {**pose, "clutter_rules": clutter, "face_only": clutter and region is None
                     and region_faces is not None, "hair_share": hair_share}

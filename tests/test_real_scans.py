@@ -36,10 +36,12 @@ def _ict_with_inner_landmarks(ict_model):
     return with_landmarks(ict_model, np.load(ICT_DIR / "ict_face_identity.npz")["landmarks68"][17:68])
 
 
-def _ict_person(model, seed: int, units: str = "mm", posed: bool = True):
+def _ict_person(model, seed: int, units: str = "mm", posed: bool = True, clutter: float = 0.5,
+                scanner: np.random.Generator | None = None):
     """A realistic scan of someone outside ``model``'s span, as the real-scans benchmark makes them
     (docs/benchmarks.md §8): an identity sample plus an expression the model lacks, with hair,
-    neck and shoulders worth 50% of the face's points, from a yaw in ±45°."""
+    neck and shoulders worth ``clutter`` of the face's points, from a yaw in ±45°; ``scanner``: the
+    scanner's own draws (default: the person's generator goes on)."""
     from statfit.synth import load_delta
     from conftest import ICT_DIR
 
@@ -49,8 +51,9 @@ def _ict_person(model, seed: int, units: str = "mm", posed: bool = True):
     rng = np.random.default_rng(1000 + seed)
     expression = names[rng.integers(len(names))]
     shape = model.sample(rng) + rng.uniform(0.5, 1.0) * load_delta(str(expressions), expression)
-    return realistic_scan(shape, model.faces, rng, yaw_deg=rng.uniform(-45, 45), clutter=0.5, units=units,
-                          posed=posed)
+    yaw = rng.uniform(-45, 45)
+    return realistic_scan(shape, model.faces, rng if scanner is None else scanner, yaw_deg=yaw, clutter=clutter,
+                          units=units, posed=posed)
 
 
 def test_realistic_scan_holds_the_shape_clutter_as_asked_and_its_pose(embedded_model):
@@ -181,7 +184,7 @@ def test_the_points_beyond_the_face_fits_scalp_are_the_hair(embedded_model):
     scanner took off the hair layer (0.056–0.104 radii out) and none of the head's."""
     from statfit.frame import Frame
     from statfit.global_align import POSE_FACE_RADIUS
-    from statfit.hair import outside_off_the_face
+    from statfit.hair import hair_suspects
     from statfit.model import face_triangles
 
     model = embedded_model
@@ -191,16 +194,38 @@ def test_the_points_beyond_the_face_fits_scalp_are_the_hair(embedded_model):
                           clutter_parts=("hair",))
     frame = Frame.of(model.template)
     to_unit = lambda p: torch.as_tensor((p - frame.center) / frame.scale)  # noqa: E731  (scan and model frames coincide here)
-    hair = outside_off_the_face(ClosestPointQuery(model.faces, model.num_vertices, k=2), to_unit(shape),
+    hair = hair_suspects(ClosestPointQuery(model.faces, model.num_vertices, k=2), to_unit(shape),
                                 to_unit(made.vertices), torch.as_tensor(face_triangles(model, POSE_FACE_RADIUS))).numpy()
     assert (~made.on_shape).sum() > 100
     assert hair[~made.on_shape].mean() > 0.95 and not hair[made.on_shape].any()
 
 
+def test_the_scalp_lies_above_and_behind_the_face(ict_model, embedded_model):
+    """The scalp region holds the crown and the back of the head, and no triangle of the face
+    (ICT: its inner landmarks' triangles) nor of the neck below it; a model with neither a face
+    region nor landmarks has none."""
+    import dataclasses
+
+    from statfit.model import scalp_triangles
+
+    model = _ict_with_inner_landmarks(ict_model)
+    scalp = scalp_triangles(model)
+    template, faces = model.template, model.faces
+    touching = lambda vertex: (faces == vertex).any(axis=1)  # noqa: E731
+    crown = int(np.argmax(template[:, 1]))
+    head = template[:, 1] > template[model.landmarks, 1].max()
+    back = int(np.flatnonzero(head)[np.argmin(template[head, 2])])
+    assert scalp[touching(crown)].all() and scalp[touching(back)].all()
+    assert not scalp[np.isin(faces, model.landmarks).any(axis=1)].any()
+    assert not scalp[touching(int(np.argmin(template[:, 1])))].any()
+    bare = dataclasses.replace(embedded_model, regions={}, landmarks=None)
+    assert scalp_triangles(bare) is None
+
+
 def test_hair_is_what_lies_beyond_the_offset_off_the_face():
     """On a unit sphere, points pushed out along the normal by 0.08 (beyond HAIR_OFFSET 0.05) off the
     face are hair; 0.02 out, pushed in, or over the face (z > 0.5) are not."""
-    from statfit.hair import HAIR_OFFSET, outside_off_the_face
+    from statfit.hair import HAIR_OFFSET, hair_suspects
 
     sphere = trimesh.creation.icosphere(4)
     rng = np.random.default_rng(0)
@@ -208,7 +233,7 @@ def test_hair_is_what_lies_beyond_the_offset_off_the_face():
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     offsets = rng.choice([-0.08, 0.02, 0.08], size=400)
     face = sphere.triangles_center[:, 2] > 0.5
-    hair = outside_off_the_face(ClosestPointQuery(sphere.faces, len(sphere.vertices), k=3),
+    hair = hair_suspects(ClosestPointQuery(sphere.faces, len(sphere.vertices), k=3),
                                 torch.as_tensor(sphere.vertices), torch.as_tensor(directions * (1 + offsets[:, None])),
                                 torch.as_tensor(face)).numpy()
     off_face = directions[:, 2] < 0.45             # clear of the face's ragged border
@@ -219,33 +244,34 @@ def test_hair_is_what_lies_beyond_the_offset_off_the_face():
 
 
 def test_the_fit_leaves_the_hair_out_and_fits_the_rest_of_the_head(embedded_model):
-    """With the clutter rules on, the fit drops the points beyond a face-only fit's scalp and fits the
-    rest of the head: the whole head lands nearer the truth than when the data term keeps to the face
+    """With the clutter rules on, the fit drops the points beyond a face-only fit's scalp and those on
+    the scalp region, and fits the rest of the head: the whole head lands nearer the truth than when
+    the data term keeps to the face
     (the fallback when most of the scan lies out there), and the face as near as on the clean scan."""
     import importlib
 
-    register_module = importlib.import_module("statfit.register")
+    hair_module = importlib.import_module("statfit.hair")
     model = embedded_model
     face = model.regions["face"]
     errors = {}
-    for name, clutter, share in (("clean", 0.0, register_module.MAX_HAIR_SHARE),
-                                 ("hair left out", 0.5, register_module.MAX_HAIR_SHARE), ("face only", 0.5, -1.0)):
+    for name, clutter, share in (("clean", 0.0, hair_module.MAX_HAIR_SHARE),
+                                 ("hair left out", 0.5, hair_module.MAX_HAIR_SHARE), ("face only", 0.5, -1.0)):
         rng = np.random.default_rng(7)
         shape = model.sample(rng)
         made = realistic_scan(shape, model.faces, rng, clutter=clutter, holes=0, posed=False, units="m")
         with pytest.MonkeyPatch.context() as patch:
-            patch.setattr(register_module, "MAX_HAIR_SHARE", share)
+            patch.setattr(hair_module, "MAX_HAIR_SHARE", share)
             fit = register(model, Scan.from_mesh(made.vertices, made.faces), "pca", align="none", clutter=True)
         distance = np.linalg.norm(fit.vertices - shape, axis=1)
         errors[name] = (float(distance.mean()), float(distance[face].mean()))
-    assert errors["hair left out"][0] < 0.5 * errors["face only"][0], errors    # measured 0.34
-    assert errors["hair left out"][1] <= 1.1 * errors["clean"][1] + 1e-5, errors   # measured 0.79
+    assert errors["hair left out"][0] < 0.5 * errors["face only"][0], errors    # measured 0.40
+    assert errors["hair left out"][1] <= 1.1 * errors["clean"][1] + 1e-5, errors   # measured 0.64
 
 
 def test_hair_does_not_tilt_the_pose(embedded_model):
     """Scans whose only clutter is hair: posed as well as with the hair cut out of the scan, and
-    better than when the last polish fits the hair too (measured: 0.09–0.29° against 0.30–0.52°)."""
-    import statfit.global_align as global_align
+    better than when the last polish fits the hair too (measured: 0.14–0.24° against 0.14–0.51°)."""
+    import statfit.hair as hair_module
 
     model = embedded_model
     angles = {"hair left out": [], "hair fitted": [], "hair cut out": []}
@@ -254,10 +280,10 @@ def test_hair_does_not_tilt_the_pose(embedded_model):
         made = realistic_scan(model.sample(rng), model.faces, rng, yaw_deg=rng.uniform(-40, 40), clutter=0.5,
                               units="mm", clutter_parts=("hair",))
         shape_only = made.faces[made.on_shape[made.faces].all(axis=1)]
-        for name, faces, share in (("hair left out", made.faces, global_align.MAX_HAIR_SHARE),
+        for name, faces, share in (("hair left out", made.faces, hair_module.MAX_HAIR_SHARE),
                                    ("hair fitted", made.faces, -1.0), ("hair cut out", shape_only, 0.6)):
             with pytest.MonkeyPatch.context() as patch:
-                patch.setattr(global_align, "MAX_HAIR_SHARE", share)
+                patch.setattr(hair_module, "MAX_HAIR_SHARE", share)
                 estimate = estimate_pose(model, Scan.from_mesh(made.vertices, faces))
             angles[name].append(_angle(estimate.transform.rotation, made.transform.rotation))
     mean = {name: float(np.mean(values)) for name, values in angles.items()}
@@ -266,27 +292,27 @@ def test_hair_does_not_tilt_the_pose(embedded_model):
     assert mean["hair left out"] < mean["hair cut out"] + 0.1, angles
 
 
-def test_on_a_model_with_landmarks_only_the_pose_trusts_the_face_around_them(ict_model):
-    """ICT has landmarks and no face region. The fit's face (FACE_RADIUS around the landmarks)
-    reaches over the hairline; posed on it, hair-and-neck scans tilted (the real-scans benchmark's
-    people 0-15: 1.85° mean at 0.5 radii, 1.19° at POSE_FACE_RADIUS). Four such people (an identity
-    sample plus an expression outside the model), against the truth."""
+def test_on_a_cluttered_scan_the_pose_leaves_the_scalp_to_the_hair(ict_model):
+    """ICT people outside the model (an identity sample plus an expression it lacks) with hair,
+    neck and shoulders: with the scalp region left out of the polish, the pose lands nearer the
+    truth than when only the points beyond a face fit's scalp are (docs/studies.md §16, "The scalp
+    as a region"; measured 0.34° against 0.88° on these four, 0.39° against 2.00° at worst)."""
     import statfit.global_align as global_align
-    from statfit.model import FACE_RADIUS
 
     model = _ict_with_inner_landmarks(ict_model)
-    angles: dict[float, list[float]] = {FACE_RADIUS: [], global_align.POSE_FACE_RADIUS: []}
+    angles: dict[str, list[float]] = {"scalp left out": [], "beyond the face fit only": []}
     for seed in range(4):
         made = _ict_person(model, seed)
         scan = Scan.from_mesh(made.vertices, made.faces)
-        for radius in angles:
+        for name in angles:
             with pytest.MonkeyPatch.context() as patch:
-                patch.setattr(global_align, "POSE_FACE_RADIUS", radius)
+                if name != "scalp left out":
+                    patch.setattr(global_align, "scalp_triangles", lambda model: None)
                 estimate = estimate_pose(model, scan)
-            angles[radius].append(_angle(estimate.transform.rotation, made.transform.rotation))
-    wide, tight = (float(np.mean(values)) for values in angles.values())
-    assert tight < 0.75 * wide, angles
-    assert tight < 1.5, angles
+            angles[name].append(_angle(estimate.transform.rotation, made.transform.rotation))
+    left_out, beyond = (float(np.mean(values)) for values in angles.values())
+    assert left_out < 0.6 * beyond, angles
+    assert max(angles["scalp left out"]) < 1.0, angles
 
 
 def test_a_scan_already_on_the_model_is_left_where_it_is(embedded_model):
@@ -377,3 +403,24 @@ def test_the_pose_found_places_the_fit_as_well_as_landmarks_do(ict_model):
         angles.append(_angle(found.transform.rotation, made.transform.rotation))
     assert sum(ratio <= 1.5 for ratio in ratios) >= 5, ratios
     assert max(angles) < 10, angles
+
+
+@pytest.mark.slow
+def test_clutter_hardly_moves_the_face_of_a_scan_fitted_as_it_comes(ict_model):
+    """Issue 11's clutter target at a looser margin, on six people past the benchmark's: each
+    scanned without clutter and with hair, neck and shoulders worth 50% of its points (the same
+    scanner draws otherwise), posed without landmarks and fitted with `pca`. The mean face error
+    (vertices within 3 cm of an inner landmark) changes by at most 20% (measured 1.08 → 1.16 mm,
+    +7%; before the scalp region, 1.08 → 1.72, +59%; the benchmark, docs/benchmarks.md §8, asks 10%
+    of the default)."""
+    model = _ict_with_inner_landmarks(ict_model)
+    template = model.template
+    near = np.linalg.norm(template[:, None] - template[model.landmarks][None], axis=-1).min(axis=1) < 3.0
+    errors = {0.0: [], 0.5: []}
+    for seed in range(50, 56):
+        for clutter in errors:
+            made = _ict_person(model, seed, clutter=clutter, scanner=np.random.default_rng(seed))
+            fit = register(model, Scan.from_mesh(made.vertices, made.faces), "pca", threads=1)
+            errors[clutter].append(float(np.linalg.norm(fit.vertices - made.truth, axis=1)[near].mean()))
+    clean, cluttered = (float(np.mean(values)) for values in errors.values())
+    assert cluttered <= 1.2 * clean, errors
