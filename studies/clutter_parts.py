@@ -24,16 +24,14 @@ Off the fitted model's span too: ``--k 50`` fits with the ICT model truncated to
 from __future__ import annotations
 
 import argparse
-import json
-import multiprocessing
 import sys
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
+from study_runs import run_or_report  # noqa: E402  (beside this script)
 
 RESULTS = ROOT / "studies" / "results" / "clutter_parts{}.json"   # "" for the full model, "_k50" for --k 50
 SEEDS = range(6)
@@ -94,12 +92,7 @@ def main() -> None:
     parser.add_argument("--report", action="store_true", help="only print the tables of the stored results")
     args = parser.parse_args()
     results = RESULTS.with_name(RESULTS.name.format("" if args.k is None else f"_k{args.k}"))
-    if not args.report:
-        runs = [(seed, name, args.k) for name in SCANS for seed in SEEDS]
-        with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as pool:
-            rows = list(pool.map(run_case, *zip(*runs)))
-        results.write_text(json.dumps(rows, indent=1))
-    print(report(json.loads(results.read_text())))
+    run_or_report(run_case, [(seed, name, args.k) for name in SCANS for seed in SEEDS], results, report, args.report)
 
 
 if __name__ == "__main__":
