@@ -195,7 +195,7 @@ def test_the_points_beyond_the_face_fits_scalp_are_the_hair(embedded_model):
     frame = Frame.of(model.template)
     to_unit = lambda p: torch.as_tensor((p - frame.center) / frame.scale)  # noqa: E731  (scan and model frames coincide here)
     hair = hair_suspects(ClosestPointQuery(model.faces, model.num_vertices, k=2), to_unit(shape),
-                                to_unit(made.vertices), torch.as_tensor(face_triangles(model, POSE_FACE_RADIUS))).numpy()
+                         to_unit(made.vertices), torch.as_tensor(face_triangles(model, POSE_FACE_RADIUS))).numpy()
     assert (~made.on_shape).sum() > 100
     assert hair[~made.on_shape].mean() > 0.95 and not hair[made.on_shape].any()
 
@@ -234,8 +234,8 @@ def test_hair_is_what_lies_beyond_the_offset_off_the_face():
     offsets = rng.choice([-0.08, 0.02, 0.08], size=400)
     face = sphere.triangles_center[:, 2] > 0.5
     hair = hair_suspects(ClosestPointQuery(sphere.faces, len(sphere.vertices), k=3),
-                                torch.as_tensor(sphere.vertices), torch.as_tensor(directions * (1 + offsets[:, None])),
-                                torch.as_tensor(face)).numpy()
+                         torch.as_tensor(sphere.vertices), torch.as_tensor(directions * (1 + offsets[:, None])),
+                         torch.as_tensor(face)).numpy()
     off_face = directions[:, 2] < 0.45             # clear of the face's ragged border
     on_face = directions[:, 2] > 0.55
     assert 0.02 < HAIR_OFFSET < 0.08             # the offsets straddle it
@@ -246,8 +246,8 @@ def test_hair_is_what_lies_beyond_the_offset_off_the_face():
 def test_the_fit_leaves_the_hair_out_and_fits_the_rest_of_the_head(embedded_model):
     """With the clutter rules on, the fit drops the points beyond a face-only fit's scalp and those on
     the scalp region, and fits the rest of the head: the whole head lands nearer the truth than when
-    the data term keeps to the face
-    (the fallback when most of the scan lies out there), and the face as near as on the clean scan."""
+    the data term keeps to the face (the fallback when most of the scan lies out there), and the face
+    as near as on the clean scan."""
     import importlib
 
     hair_module = importlib.import_module("statfit.hair")
