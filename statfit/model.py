@@ -195,10 +195,10 @@ SCALP_BEHIND = 0.3
 
 def scalp_triangles(model: StatModel) -> np.ndarray | None:
     """(F,) bool: the triangles hair can cover — a vertex SCALP_ABOVE radii above the face's
-    highest point, or SCALP_BEHIND behind its deepest and above its middle height (the model's +y up, +z
-    its face's direction, as FLAME, ICT, BFM and the embedded model are built). The face is the
-    model's ``face`` region, else its landmarks (which must then be the face's: a landmark on the
-    crown or an ear would move the scalp); None for a model with neither."""
+    highest point, or SCALP_BEHIND behind its deepest and above its middle height (the model's +y
+    up, +z its face's direction, as FLAME, ICT, BFM and the embedded model are built). The face is
+    the model's ``face`` region, else its landmarks (which must then be the face's: a landmark on
+    the crown or an ear would move the scalp); None for a model with neither."""
     if model.regions and "face" in model.regions:
         anchors = model.template[region_vertices(model, "face")]
     elif model.landmarks is not None:
