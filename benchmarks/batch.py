@@ -49,7 +49,7 @@ def bookkeeping_run(inputs: str, out_dir: str, workers: int) -> None:
     from statfit.batch.fits import FitJob
     from statfit.batch.plan import expand_inputs, plan_outputs
     from statfit.batch.run import run_batch
-    from statfit.methods import resolve
+    from statfit.core.methods import resolve
 
     out = Path(out_dir)
     out.mkdir(exist_ok=True)
@@ -78,9 +78,9 @@ def _in_one_process(scans: list[Path], out: Path, model: str | None, method: lis
     kwargs = {"method": options.get("--method", "default"), "preset": options.get("--preset", "tuned")}
     if "--iterations" in options:
         kwargs["iterations"] = int(options["--iterations"])
-    code = ("from pathlib import Path; from statfit.importers.cache import open_model; "
+    code = ("from pathlib import Path; from statfit.model.importers.cache import open_model; "
             "from statfit.io.mesh import read_points, mesh_bytes, write_atomic; from statfit.register import register; "
-            "from statfit.threads import flush_denormals_everywhere; flush_denormals_everywhere(); "
+            "from statfit.core.threads import flush_denormals_everywhere; flush_denormals_everywhere(); "
             f"model = open_model({model!r} and Path({model!r})); "
             f"[write_atomic(Path({str(out)!r}) / (Path(s).stem + '.ply'), mesh_bytes(register(model, read_points(s), "
             f"**{kwargs!r}).vertices, model.faces, 'ply')) for s in {[str(s) for s in scans]!r}]")
@@ -112,8 +112,8 @@ def _embedded_scans(folder: Path, count: int) -> list[Path]:
     import numpy as np
 
     from statfit.io.mesh import points_bytes
-    from statfit.model import default_model_path, load_model
-    from statfit.synth import sample_target, scan_from_view
+    from statfit.model.statmodel import default_model_path, load_model
+    from statfit.synth.sample import sample_target, scan_from_view
 
     model = load_model(default_model_path())
     paths = []

@@ -31,18 +31,18 @@ FORMER_DEFAULT = "former default (statistical 4,000 + 1,333)"
 
 
 def former_default_stages() -> tuple:
-    from statfit.settings import Settings
+    from statfit.core.settings import Settings
 
     return (Settings("statistical", 4000, 0.03, beta=1000.0, mode_gain=1.0),
             Settings("statistical", 1333, 0.01, beta=1000.0, mode_gain=0.5))
 
 
 def register_named(model, points, name: str, iterations: int | None = None, **options):
-    """``statfit.register.register`` with a shipped method or pipeline ``name``, or
+    """``statfit.register.job.register`` with a shipped method or pipeline ``name``, or
     :data:`FORMER_DEFAULT` (its stages as they were; ``iterations`` then replaces each stage's)."""
     from dataclasses import replace
 
-    from statfit.register import register
+    from statfit.register.job import register
 
     if name != FORMER_DEFAULT:
         return register(model, points, name, iterations=iterations, **options)
@@ -71,19 +71,19 @@ class NormalCase:
     name: str
     target: np.ndarray
     normal_map: object  # statfit.io.normalmap.NormalMap
-    camera: object  # statfit.render.Camera
+    camera: object  # statfit.renderer.Camera
     observed: np.ndarray  # (N,) bool: vertices of triangles seen in the map
 
 
 @lru_cache(maxsize=1)
 def ict_model():
-    from statfit.model import load_model
+    from statfit.model.statmodel import load_model
 
     return load_model(ICT_MODEL)
 
 
 def _target(seed: int, expression: str, weight: float) -> tuple[np.ndarray, np.random.Generator]:
-    from statfit.synth import load_delta, sample_target
+    from statfit.synth.sample import load_delta, sample_target
 
     rng = np.random.default_rng(seed)
     return sample_target(ict_model(), rng, 1.0, load_delta(str(ICT_EXPRESSIONS), expression), weight), rng
@@ -91,8 +91,8 @@ def _target(seed: int, expression: str, weight: float) -> tuple[np.ndarray, np.r
 
 def scan_case(name: str) -> ScanCase:
     """The named partial-scan case."""
-    from statfit.metrics import observed_vertices
-    from statfit.synth import scan_from_view
+    from statfit.geometry.metrics import observed_vertices
+    from statfit.synth.sample import scan_from_view
 
     seed, expression, weight, yaw, pitch = STUDY_SCAN_CASES[name]
     target, rng = _target(seed, expression, weight)
@@ -102,9 +102,10 @@ def scan_case(name: str) -> ScanCase:
 
 def normal_case(name: str, size: int) -> NormalCase:
     """The named normal-map case at ``size``² pixels."""
-    from statfit.normal_map import NormalMap
-    from statfit.metrics import visible_vertices
-    from statfit.synth import camera_for_view, render_target
+    from statfit.structures.normal_map import NormalMap
+    from statfit.geometry.metrics import visible_vertices
+    from statfit.synth.sample import camera_for_view
+    from statfit.renderer.images import render_target
 
     seed, expression, weight, yaw, pitch = NORMAL_CASES[name]
     target, _ = _target(seed, expression, weight)

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from common import Section, in_child, markdown_table, save_figure
 
-from statfit.methods import METHODS as REGISTRY  # noqa: E402
+from statfit.core.methods import METHODS as REGISTRY  # noqa: E402
 
 METHODS = ("default", *(name for name, method in REGISTRY.items() if "register" in method.tuned))
 FULL = {"scan": ("jaw-open", "smile"), "normals": ("jaw-open",), "size": 256, "iterations": None, "methods": METHODS}
@@ -41,11 +41,11 @@ def trace(job: str, case_name: str, method: str, size: int, iterations: int | No
     overrides = {"iterations": iterations} if iterations else {}
     start = time.perf_counter()
     if job == "scan":
-        from statfit.register import register
+        from statfit.register.job import register
 
         register(model, case.points, method, device=device, on_snapshot=on_snapshot, **overrides)
     else:
-        from statfit.inverse_render import reconstruct
+        from statfit.render.job import reconstruct
 
         reconstruct(model, case.normal_map, case.camera, method, device=device, on_snapshot=on_snapshot, **overrides)
     return {"job": job, "case": case_name, "method": method, "trace": points}

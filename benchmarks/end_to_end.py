@@ -17,7 +17,7 @@ from pathlib import Path
 from cases import normal_case, relative_errors, scan_case
 from common import ICT_MODEL, Section, markdown_table
 
-from statfit.methods import METHODS as REGISTRY  # noqa: E402
+from statfit.core.methods import METHODS as REGISTRY  # noqa: E402
 
 METHODS = tuple(name for name, method in REGISTRY.items() if "register" in method.tuned)
 FULL = {"register_iterations": None, "render_iterations": None, "size": 512, "methods": ("default", *METHODS)}

@@ -40,7 +40,7 @@ def machine_bandwidth(device: torch.device) -> dict[str, float]:
 
 def statistical_ms(vertices: int, k: int, device: torch.device, repeats: int) -> float:
     """Median ms of one statistical filter step (statfit's StatisticalFilter, β = 30)."""
-    from statfit.filters import StatisticalFilter
+    from statfit.core.filters import StatisticalFilter
 
     basis_t = torch.randn(k, 3 * vertices, device=device).mul_((3 * vertices) ** -0.5)
     grad = torch.randn(vertices, 3, device=device)
@@ -50,8 +50,8 @@ def statistical_ms(vertices: int, k: int, device: torch.device, repeats: int) ->
 
 def laplacian_rows(side: int, device: torch.device, repeats: int) -> list[dict]:
     """Factorisation and solve times of (I + λL)⁻¹ on a side² grid, one row per solver."""
-    from statfit.laplacian import smoothing_matrix
-    from statfit.solvers import SOLVERS, make_solver
+    from statfit.core.laplacian import smoothing_matrix
+    from statfit.core.solvers import SOLVERS, make_solver
 
     vertices, faces = grid(side)
     matrix = smoothing_matrix(vertices, faces, LAM)
@@ -70,7 +70,7 @@ def laplacian_rows(side: int, device: torch.device, repeats: int) -> list[dict]:
 
 def measure(quick: bool, device: str = "cpu") -> dict:
     """All timings of this part (runs in one process)."""
-    from statfit.threads import available_cores, intra_op_threads
+    from statfit.core.threads import available_cores, intra_op_threads
 
     mode = "quick" if quick else "full"
     torch_device = torch.device(device)
@@ -108,7 +108,7 @@ def section(results: dict, image_dir: Path) -> Section:
         f"Machine bandwidth in the same run: copy {bandwidth['copy']:.1f} GB/s (read + write), "
         f"read-only sum {bandwidth['read']:.1f} GB/s. A basis small enough to stay in the last-level cache "
         "(the smallest sizes) streams faster than memory: fractions above 1. On several threads the "
-        "filter's two mat-vecs run as batches over column blocks, one per thread (statfit.matvec): "
+        "filter's two mat-vecs run as batches over column blocks, one per thread (statfit.core.matvec): "
         "torch's own mat-vec streams the basis from one thread.",
         markdown_table(["side", "vertices", "k", "threads", "statistical ms", "fastest Laplacian solver", "its solve ms",
                         "ratio statistical / Laplacian", "statistical GB/s", "fraction of copy BW",

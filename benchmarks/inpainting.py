@@ -49,7 +49,7 @@ def _timed(fn):
 
 def measure(quick: bool, device: str = "cpu") -> dict:
     """One-off costs and per-method step times and hole errors."""
-    from statfit.filters import LaplacianFilter
+    from statfit.core.filters import LaplacianFilter
     from statfit.texture.grid import grid_laplacian
     from statfit.texture.inpaint import inpaint, inpaint_settings, model_reconstruction
     from texture_fixtures import brow_hole, face_textures, hole_errors

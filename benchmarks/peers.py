@@ -23,16 +23,16 @@ import torch
 
 from cases import SCAN_CASES, ict_model, relative_errors, scan_case
 from common import Section, in_child, markdown_table, save_json
-from statfit.closest import ClosestPointQuery
-from statfit.fit import run_fit
-from statfit.frame import Frame
-from statfit.methods import build
-from statfit.settings import FitSpace, Settings
+from statfit.geometry.closest import ClosestPointQuery
+from statfit.core.fit import run_fit
+from statfit.structures.frame import Frame
+from statfit.core.methods import build
+from statfit.core.settings import FitSpace, Settings
 from statfit.objectives.scan import ScanObjective
-from statfit.register import register
+from statfit.register.job import register
 
 THREADS = 2
-# (λ, lr, iterations): the paper's laplacian settings and statfit's tuned ones (statfit.methods).
+# (λ, lr, iterations): the paper's laplacian settings and statfit's tuned ones (statfit.core.methods).
 LAPLACIAN = {"paper": (19.0, 0.01, 500), "tuned": (300.0, 0.1, 1000)}
 QUICK_ITERATIONS = 200
 QUICK = ("jaw-open only; 200 laplacian iterations at the paper's λ and lr only; the default pipeline cut to "
@@ -63,7 +63,7 @@ matrix and its factorisation; ms / iteration = the loop's wall time / iterations
 LARGESTEPS_NOTES = """The two follow the same trajectory: the map is linear, so x₀ + M⁻¹u (u₀ = 0) and M⁻¹u (u₀ = Mx₀)
 receive the same gradients M⁻¹∂L/∂x and the same AdamUniform steps (largesteps' ε 1e-8 is added to
 max √v̂, statfit's to √max v̂: the same number); `compute_matrix` without `alpha` is I + λL with the
-combinatorial Laplacian D − A, as in `statfit.laplacian`. The remaining difference is float32
+combinatorial Laplacian D − A, as in `statfit.core.laplacian`. The remaining difference is float32
 round-off (M⁻¹Mx₀ ≠ x₀ by ~1e-7, then carried along the trajectory: ~1e-6 after 500 iterations,
 up to 2e-5 radii after 1000 at λ 300). Notes: largesteps 0.2.2's `compute_matrix` hard-codes
 device='cuda', so on the CPU its own code runs with `torch.arange`/`torch.ones` redirected to the CPU;

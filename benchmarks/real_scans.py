@@ -2,7 +2,7 @@
 
 Each scan is a person the model did not generate exactly — an ICT identity sample (all 100 modes)
 plus an expression outside the identity model at a random weight — seen by the simulated range
-scanner (statfit.scanner: hair over the scalp, neck and shoulders, 3 holes, grazing loss, depth
+scanner (statfit.synth.scanner: hair over the scalp, neck and shoulders, 3 holes, grazing loss, depth
 noise 0.2% of the radius), turned by a rotation uniform over all rotations, moved, and written in
 mm, cm or m at random; the view's yaw is uniform in ±45°.
 
@@ -41,16 +41,16 @@ MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
 
 def _model():
     from cases import ict_model
-    from statfit.model import with_landmarks
+    from statfit.model.statmodel import with_landmarks
 
     return with_landmarks(ict_model(), np.load(ICT_MODEL)["landmarks68"][INNER].astype(np.int64))
 
 
 def _person(seed: int, clutter: float, clutter_parts: tuple[str, ...] | None = None):
     """A realistic scan of seed's person: (RealisticScan, units); ``clutter_parts`` as
-    :func:`statfit.scanner.realistic_scan`'s (default: all)."""
-    from statfit.scanner import CLUTTER_PARTS, realistic_scan
-    from statfit.synth import load_delta
+    :func:`statfit.synth.scanner.realistic_scan`'s (default: all)."""
+    from statfit.synth.scanner import CLUTTER_PARTS, realistic_scan
+    from statfit.synth.sample import load_delta
 
     model = _model()
     rng = np.random.default_rng(1000 + seed)
@@ -69,10 +69,10 @@ def pose_case(seed: int) -> dict:
     import torch
 
     torch.set_num_threads(1)
-    from statfit.global_align import estimate_pose
-    from statfit.register import register
-    from statfit.scan import Scan
-    from statfit.threads import flush_denormals_everywhere
+    from statfit.register.pose import estimate_pose
+    from statfit.register.job import register
+    from statfit.structures.scan import Scan
+    from statfit.core.threads import flush_denormals_everywhere
 
     flush_denormals_everywhere()
     model = _model()
@@ -101,9 +101,9 @@ def clutter_case(seed: int, method: str) -> dict:
     import torch
 
     torch.set_num_threads(1)
-    from statfit.register import register
-    from statfit.scan import Scan
-    from statfit.threads import flush_denormals_everywhere
+    from statfit.register.job import register
+    from statfit.structures.scan import Scan
+    from statfit.core.threads import flush_denormals_everywhere
 
     flush_denormals_everywhere()
     model = _model()

@@ -33,7 +33,7 @@ def fit_once(method: str, threads: int | None, iterations: int | None, case: str
     import numpy as np
 
     from cases import ict_model
-    from statfit.threads import choose_threads, flush_denormals_everywhere
+    from statfit.core.threads import choose_threads, flush_denormals_everywhere
 
     flush_denormals_everywhere()
     data = scan_case(case)

@@ -24,9 +24,9 @@ def renderer_ms(per_triangle: int, threads: int, size: int) -> tuple[int, int, f
     import numpy as np
     import torch
 
-    from statfit.importers.cache import open_model
-    from statfit.splat import MeshSplats, render_surfels
-    from statfit.synth import camera_for_view
+    from statfit.model.importers.cache import open_model
+    from statfit.renderer import MeshSplats, render_surfels
+    from statfit.synth.sample import camera_for_view
 
     torch.set_num_threads(threads)
     model = open_model(ICT_MODEL)

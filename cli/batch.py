@@ -23,15 +23,15 @@ from statfit.batch.manifest import MANIFEST_NAME, batch_status
 from statfit.batch.plan import Item, expand_inputs, plan_outputs
 from statfit.batch.run import BatchReport, run_batch
 from statfit.errors import StatfitError
-from statfit.importers.cache import content_key, open_model
-from statfit.inverse_render import ALIGNMENTS, NORMAL_CONVENTIONS, NORMAL_SPACES, render_stages
-from statfit.register import ALIGNMENTS as SCAN_ALIGNMENTS
+from statfit.model.importers.cache import content_key, open_model
+from statfit.render.job import ALIGNMENTS, NORMAL_CONVENTIONS, NORMAL_SPACES, render_stages
+from statfit.register.job import ALIGNMENTS as SCAN_ALIGNMENTS
 from statfit.io.normalmap import read_camera
-from statfit.methods import resolve
-from statfit.model import StatModel, region_vertices
+from statfit.core.methods import resolve
+from statfit.model.statmodel import StatModel, region_vertices
 from statfit.objectives.normals import SILHOUETTE_WEIGHT
-from statfit.device import resolve_device
-from statfit.threads import available_cores
+from statfit.core.device import resolve_device
+from statfit.core.threads import available_cores
 from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, IterationsOption, KOption, LamOption,
                                 LaplacianOption, LrOption, MethodOption, ModeGainOption, ModelOption, PowerOption,
                                 PresetOption, QuietOption, SeedOption, PROGRESS_LINE_SECONDS, clutter_choice,

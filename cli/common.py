@@ -13,7 +13,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from statfit.errors import StatfitError
-from statfit.methods import METHODS
+from statfit.core.methods import METHODS
 
 stderr = Console(stderr=True)
 
@@ -76,7 +76,7 @@ ModeGainOption = typer.Option(None, help="γ: filter gain on mode j = (std_j/std
 
 def setting_overrides(iterations: int | None, lr: float | None, beta: float | None, power: float | None,
                       lam: float | None, laplacian: str | None, mode_gain: float | None) -> dict:
-    """The method-setting options as overrides for :func:`statfit.methods.resolve` (validated)."""
+    """The method-setting options as overrides for :func:`statfit.core.methods.resolve` (validated)."""
     if laplacian is not None and laplacian not in ("uniform", "cotangent"):
         raise StatfitError(f"unknown Laplacian {laplacian!r}; choose uniform or cotangent")
     return dict(iterations=iterations, lr=lr, beta=beta, power=power, lam=lam, laplacian=laplacian,

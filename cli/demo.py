@@ -6,11 +6,11 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from statfit.methods import METHODS, resolve
-from statfit.metrics import evaluate, observed_vertices
-from statfit.register import register as fit_scan
-from statfit.synth import sample_target, scan_from_view
-from statfit.importers.cache import open_model
+from statfit.core.methods import METHODS, resolve
+from statfit.geometry.metrics import evaluate, observed_vertices
+from statfit.register.job import register as fit_scan
+from statfit.synth.sample import sample_target, scan_from_view
+from statfit.model.importers.cache import open_model
 from statfit_cli.common import progress_bar, seed_option, within
 
 

@@ -12,9 +12,9 @@ from rich.table import Table
 from statfit.errors import StatfitError
 from statfit.io.mesh import read_mesh, read_points
 from statfit.io.normalmap import camera_for_map, read_normal_map
-from statfit.metrics import evaluate as evaluate_fit, observed_vertices, visible_vertices
-from statfit.model import region_vertices, units_guess
-from statfit.importers.cache import open_model
+from statfit.geometry.metrics import evaluate as evaluate_fit, observed_vertices, visible_vertices
+from statfit.model.statmodel import region_vertices, units_guess
+from statfit.model.importers.cache import open_model
 
 
 MILLIMETRES_PER_UNIT = {"metres": 1000.0, "centimetres": 10.0, "millimetres": 1.0}

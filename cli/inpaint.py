@@ -7,7 +7,7 @@ import typer
 
 from statfit.io.image import encoded_image, image_suffix, read_charts, read_image, read_mask
 from statfit.io.mesh import check_writable
-from statfit.device import resolve_device
+from statfit.core.device import resolve_device
 from statfit.texture.inpaint import inpaint as fill, inpaint_settings
 from statfit.texture.model import load_texture_model
 from statfit_cli.common import DeviceOption, JsonOption, LogOption, QuietOption

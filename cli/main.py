@@ -8,7 +8,7 @@ import typer
 
 from statfit import __version__
 from statfit.errors import StatfitError
-from statfit.threads import flush_denormals_everywhere
+from statfit.core.threads import flush_denormals_everywhere
 from statfit_cli import batch, demo, evaluate, inpaint, model, register, render, splat, synth, texture
 
 app = typer.Typer(

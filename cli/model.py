@@ -9,14 +9,14 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from statfit.build import build_model_from_files
+from statfit.model.build import build_model_from_files
 from statfit.errors import StatfitError
-from statfit.importers import import_model
-from statfit.importers.makehuman import read_makehuman
-from statfit.importers.makehuman_shapes import BodySpace, body_regions, build_body_model
+from statfit.model.importers import import_model
+from statfit.model.importers.makehuman import read_makehuman
+from statfit.model.importers.makehuman_shapes import BodySpace, body_regions, build_body_model
 from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, write_atomic
-from statfit.model import StatModel, save_model, units_guess
-from statfit.importers.cache import open_model
+from statfit.model.statmodel import StatModel, save_model, units_guess
+from statfit.model.importers.cache import open_model
 from statfit_cli.common import SeedOption, printed_warnings, seed_option, within
 
 

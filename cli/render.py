@@ -6,13 +6,13 @@ from pathlib import Path
 import typer
 
 from statfit.errors import StatfitError
-from statfit.inverse_render import camera_space_normals, reconstruct, render_stages
+from statfit.render.job import camera_space_normals, reconstruct, render_stages
 from statfit.io.image import read_mask
 from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_mesh
 from statfit.io.normalmap import apply_mask, camera_for_map, read_normal_map
 from statfit.objectives.normals import SILHOUETTE_WEIGHT
-from statfit.device import resolve_device
-from statfit.importers.cache import open_model
+from statfit.core.device import resolve_device
+from statfit.model.importers.cache import open_model
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
                                 LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
                                 PowerOption, PresetOption, QuietOption, SeedOption, ThreadsOption, setting_overrides,
@@ -103,7 +103,7 @@ def render(
                "stage_seconds": result.stage_seconds, "model_to_world": result.transform.as_matrix().tolist()}
     outputs = {out: mesh_bytes(result.vertices, model.faces, mesh_format(out))}
     if preview is not None:
-        from statfit.preview import preview_png  # matplotlib is imported only when a preview is asked for
+        from statfit.render.preview import preview_png  # matplotlib is imported only when a preview is asked for
         target = camera_space_normals(normal_map, camera, normal_space, normal_convention)
         outputs[preview] = preview_png(target, normal_map.mask, result.vertices, model.faces, camera)
     finish(run, summary, outputs, json_out)

@@ -9,18 +9,18 @@ import numpy as np
 import torch
 import typer
 
-from statfit.camera import Camera
-from statfit.device import resolve_device
+from statfit.structures.camera import Camera
+from statfit.core.device import resolve_device
 from statfit.errors import StatfitError
-from statfit.importers.cache import open_model
+from statfit.model.importers.cache import open_model
 from statfit.io.files import existing_file
 from statfit.io.image import encoded_image, image_suffix
 from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_mesh, write_atomic
 from statfit.io.splats import read_splats, splats_bytes
 from statfit.io.views import read_views
 from statfit.objectives.images import MASK_WEIGHT
-from statfit.splat.binding import PATTERNS
-from statfit.splatting import fit_views, render_splats, splat_records, splat_stages, splats_from_records
+from statfit.renderer.binding import PATTERNS
+from statfit.splat.job import fit_views, render_splats, splat_records, splat_stages, splats_from_records
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
                                 LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
                                 PowerOption, PresetOption, QuietOption, SeedOption, ThreadsOption, setting_overrides,
@@ -100,7 +100,7 @@ def splat(
     if splats_out is not None:
         outputs[splats_out] = splats_bytes(splat_records(result.splats, vertices), len(model.faces))
     if preview is not None:
-        from statfit.splat_preview import splat_preview_png
+        from statfit.splat.preview import splat_preview_png
         shown = next((view for view in views if view.split == "test"), views[0])
         outputs[preview] = splat_preview_png(shown.image, result.splats, vertices, model.faces, shown.camera,
                                              f"{shown.split} view {shown.name}")

@@ -7,17 +7,19 @@ import numpy as np
 import typer
 
 from statfit.errors import StatfitError
-from statfit.importers.makehuman import read_makehuman
-from statfit.importers.makehuman_shapes import BodySpace
+from statfit.model.importers.makehuman import read_makehuman
+from statfit.model.importers.makehuman_shapes import BodySpace
 from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, points_bytes, read_mesh, write_atomic
 from statfit.io.normalmap import write_camera, write_normal_map
 from statfit.io.image import write_image
 from statfit.io.landmarks import landmarks_text
 from statfit.io.views import CAMERAS_FILE, views_json
-from statfit.scanner import CLUTTER_PARTS, UNITS_PER_METRE, realistic_scan
-from statfit.synth import camera_for_view, load_delta, render_target, sample_target, scan_from_view
-from statfit.synth_views import generated_albedo, held_out_split, hemisphere_cameras, photograph
-from statfit.importers.cache import open_model
+from statfit.synth.scanner import CLUTTER_PARTS, UNITS_PER_METRE, realistic_scan
+from statfit.synth.sample import camera_for_view, load_delta, sample_target, scan_from_view
+from statfit.renderer.images import render_target
+from statfit.synth.views import generated_albedo, held_out_split, hemisphere_cameras
+from statfit.renderer.images import photograph
+from statfit.model.importers.cache import open_model
 from statfit_cli.common import ModelOption, seed_option, within
 
 

@@ -40,7 +40,7 @@ import numpy as np  # noqa: E402  (after the thread settings, which numpy reads 
 
 from statfit.io.mesh import write_atomic  # noqa: E402
 from statfit.io.npz import npz_bytes  # noqa: E402
-from statfit.pca import principal_components  # noqa: E402
+from statfit.model.pca import principal_components  # noqa: E402
 
 SEED = 5023
 NUM_SHAPES = 300

@@ -27,7 +27,7 @@ RESULTS = ROOT / "studies" / "results" / "antialiased_normals.json"
 
 def plain_normal_term(self, vertices):
     """NormalMapObjective.__call__ as of commit 906bc56: the normals rasterised, not antialiased."""
-    from statfit.render import fragment_normals, rasterize, silhouette_crossings
+    from statfit.renderer import fragment_normals, rasterize, silhouette_crossings
 
     fragments = rasterize(vertices, self.faces, self.camera)
     normals = fragment_normals(vertices, self.faces, fragments, self.camera)
@@ -50,7 +50,7 @@ def main() -> None:
     import render_coarse_to_fine
     from cases import ict_model, relative_errors
 
-    from statfit.inverse_render import reconstruct
+    from statfit.render.job import reconstruct
     from statfit.objectives.normals import NormalMapObjective
 
     shipped = NormalMapObjective.__call__

@@ -31,9 +31,9 @@ def measure(method: str, iterations: int | None, threads: int, preset: str) -> d
     import numpy as np
     import torch
 
-    from statfit.model import load_model
-    from statfit.register import register
-    from statfit.synth import load_delta, sample_target, scan_from_view
+    from statfit.model.statmodel import load_model
+    from statfit.register.job import register
+    from statfit.synth.sample import load_delta, sample_target, scan_from_view
 
     torch.set_num_threads(threads)
     imported = time.perf_counter()

@@ -1,4 +1,4 @@
-"""Benchmark of one differentiable render step of the ICT head (statfit.render).
+"""Benchmark of one differentiable render step of the ICT head (statfit.renderer).
 
 One step: rasterize → vertex normals + interpolation → antialias (normals and mask) → a loss
 → backward to the vertices. Prints the median time per stage and of the whole step, and the
@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from statfit.render import Camera, MeshAdjacency, normal_image, rasterize, render_normals, silhouette_crossings
+from statfit.renderer import Camera, MeshAdjacency, normal_image, rasterize, render_normals, silhouette_crossings
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from common import ICT_MODEL as ICT  # noqa: E402

@@ -31,10 +31,11 @@ def measure(method: str, size: int, iterations: int | None, threads: int, device
     import numpy as np
     import torch
 
-    from statfit.normal_map import NormalMap
-    from statfit.inverse_render import reconstruct
-    from statfit.model import load_model
-    from statfit.synth import camera_for_view, load_delta, render_target, sample_target
+    from statfit.structures.normal_map import NormalMap
+    from statfit.render.job import reconstruct
+    from statfit.model.statmodel import load_model
+    from statfit.synth.sample import camera_for_view, load_delta, sample_target
+    from statfit.renderer.images import render_target
 
     torch.set_num_threads(threads)
     model = load_model(ICT / "ict_face_identity.npz")

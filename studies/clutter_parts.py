@@ -46,9 +46,9 @@ def run_case(seed: int, scan_name: str, k: int | None = None) -> dict:
     torch.set_num_threads(1)
     import real_scans
     from scipy.spatial.transform import Rotation
-    from statfit.register import register
-    from statfit.scan import Scan
-    from statfit.threads import flush_denormals_everywhere
+    from statfit.register.job import register
+    from statfit.structures.scan import Scan
+    from statfit.core.threads import flush_denormals_everywhere
 
     flush_denormals_everywhere()
     model = real_scans._model() if k is None else real_scans._model().truncated(k)

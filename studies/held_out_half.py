@@ -52,7 +52,7 @@ METHODS = ("mean", "default", FORMER_DEFAULT, "statistical", "hybrid", "laplacia
 
 def candidates() -> dict:
     """Pipelines tried beside the shipped methods: name → (stages, register options)."""
-    from statfit.settings import Settings
+    from statfit.core.settings import Settings
 
     def gn(noise: float, levels: int = 5) -> Settings:
         return Settings("pca", 200, 0.0, optimizer="gauss-newton", noise=noise, levels=levels)
@@ -81,7 +81,7 @@ def candidates() -> dict:
 
 def register_with(method: str, model, points: np.ndarray, **options):
     """``register`` with a shipped method or a candidate pipeline of :func:`candidates`."""
-    from statfit.register import register
+    from statfit.register.job import register
 
     stages, extra = candidates().get(method, (None, {}))
     shipped = method.split(" w ")[0] if stages is None and extra else method
@@ -101,7 +101,7 @@ def smooth_deformation(vertices: np.ndarray, rng: np.random.Generator) -> np.nda
 def case_data(name: str, half: str) -> dict:
     """Target, the fitted half's points and landmarks, the held-out half's points and landmarks."""
     from cases import ICT_EXPRESSIONS, ICT_MODEL, ict_model
-    from statfit.synth import load_delta, sample_target, scan_from_view
+    from statfit.synth.sample import load_delta, sample_target, scan_from_view
 
     seed, expression, weight = TARGETS[name]
     rng = np.random.default_rng(seed)
@@ -126,10 +126,10 @@ def fit(method: str, name: str, half: str, k: int) -> dict:
 
     torch.set_num_threads(1)
     from cases import ict_model
-    from statfit.metrics import surface_distance
-    from statfit.model import with_landmarks
-    from statfit.register import landmark_alignment
-    from statfit.threads import flush_denormals_everywhere
+    from statfit.geometry.metrics import surface_distance
+    from statfit.model.statmodel import with_landmarks
+    from statfit.register.job import landmark_alignment
+    from statfit.core.threads import flush_denormals_everywhere
 
     flush_denormals_everywhere()
     data = case_data(name, half)
@@ -155,7 +155,7 @@ def in_span(method: str) -> dict:
 
     torch.set_num_threads(1)
     from cases import STUDY_SCAN_CASES, ict_model, scan_case
-    from statfit.threads import flush_denormals_everywhere
+    from statfit.core.threads import flush_denormals_everywhere
 
     flush_denormals_everywhere()
     errors = {}

@@ -29,10 +29,10 @@ def digest(array: np.ndarray) -> str:
 
 def main() -> None:
     from cases import ict_model, normal_case, scan_case
-    from statfit.inverse_render import reconstruct
-    from statfit.model import default_model_path, load_model
-    from statfit.register import register
-    from statfit.synth import sample_target, scan_from_view
+    from statfit.render.job import reconstruct
+    from statfit.model.statmodel import default_model_path, load_model
+    from statfit.register.job import register
+    from statfit.synth.sample import sample_target, scan_from_view
     from statfit.texture.inpaint import inpaint
     from statfit.texture.model import build_texture_model
 

@@ -49,8 +49,8 @@ def fit(case: str, method: str, weight: float) -> dict:
 
     torch.set_num_threads(1)
     from cases import ICT_MODEL, ict_model, register_named, scan_case
-    from statfit.model import with_landmarks
-    from statfit.threads import flush_denormals_everywhere
+    from statfit.model.statmodel import with_landmarks
+    from statfit.core.threads import flush_denormals_everywhere
 
     flush_denormals_everywhere()
     indices = np.load(ICT_MODEL)["landmarks68"][INNER].astype(np.int64)

@@ -30,8 +30,8 @@ STEP_0006 = "GN → hybrid β 1 lr 0.006 200 it (default until 2026-11-25)"   # 
 
 
 def pipelines() -> dict:
-    from statfit.methods import PIPELINES
-    from statfit.settings import Settings
+    from statfit.core.methods import PIPELINES
+    from statfit.core.settings import Settings
 
     def gn(noise: float, levels: int = 5) -> Settings:
         return Settings("pca", 200, 0.0, optimizer="gauss-newton", noise=noise, levels=levels)
@@ -74,7 +74,7 @@ def measure(stages, k: int | None = None) -> dict:
     import numpy as np
     import torch
 
-    from statfit.register import register
+    from statfit.register.job import register
 
     torch.set_num_threads(1)
     errors, seconds = {}, {}

@@ -5,7 +5,7 @@ The four rendering-study cases (benchmarks/study_render.py: same identities, exp
 rendered at 512². A schedule is a list of levels (image size, stages); the first level runs
 ``reconstruct`` with the default rigid alignment on the map reduced to its size (the alignment
 itself works on at most ~256 px), every later level continues from the previous vertices with
-``align="none"``. Maps are reduced with ``statfit.inverse_render.downsampled`` (integer factors of
+``align="none"``. Maps are reduced with ``statfit.render.job.downsampled`` (integer factors of
 512; world-space normals average and renormalise the same as camera-space ones). Error: mean
 per-vertex distance to the ground truth over all vertices / its RMS radius (benchmarks/cases.py
 ``relative_errors``); seconds: the fit calls only (alignment and setup included, target rendering
@@ -47,7 +47,7 @@ FINALISTS = ("default (shipped)", "512: hyb 450 lr .03 β10", "512: hyb 150 lr .
 
 def schedules() -> dict:
     """name → ((image size, (Settings, ...)), ...)."""
-    from statfit.methods import Settings
+    from statfit.core.methods import Settings
 
     def hyb(iterations: int, lr: float = 0.01, b2: float = 0.999, **kw) -> Settings:
         return Settings("hybrid", iterations, lr, **({"beta": 30.0, "lam": 19.0, "mode_gain": 1.0} | kw),
@@ -90,7 +90,7 @@ def make_case(name: str):
     """(ground truth, 512² NormalMap, camera, visible-vertex mask) of a rendering-study case."""
     from study_render import CASES, make_target
 
-    from statfit.metrics import visible_vertices
+    from statfit.geometry.metrics import visible_vertices
 
     case = next(c for c in CASES if c.name == name)
     gt, camera, normal_map = make_target(ict_model(), ICT_EXPRESSIONS, case, SIZE)
@@ -102,8 +102,8 @@ def reduced(normal_map, camera, size: int):
     import numpy as np
     import torch
 
-    from statfit.inverse_render import downsampled
-    from statfit.normal_map import NormalMap
+    from statfit.render.job import downsampled
+    from statfit.structures.normal_map import NormalMap
 
     if size >= min(normal_map.mask.shape):
         return normal_map, camera
@@ -114,7 +114,7 @@ def reduced(normal_map, camera, size: int):
 
 def run(schedule, gt, normal_map, camera, visible) -> dict:
     """Fit with ``schedule``; the all/visible/hidden errors, seconds and the error trace."""
-    from statfit.inverse_render import reconstruct
+    from statfit.render.job import reconstruct
 
     model = ict_model()
     trace, seconds, level_seconds, done = [], 0.0, [], 0

@@ -42,7 +42,7 @@ SCHEDULES = {"default (shipped)": (("hybrid", 150, 0.05, {"beta": 30.0, **_HYBRI
 
 
 def stages(name: str):
-    from statfit.settings import Settings
+    from statfit.core.settings import Settings
 
     return tuple(Settings(method, iterations, lr, **extra) for method, iterations, lr, extra in SCHEDULES[name])
 
@@ -53,13 +53,13 @@ def run_case(task: tuple[str, str]) -> dict:
     import torch
 
     torch.set_num_threads(1)
-    import statfit.inverse_render
+    import statfit.render.job
     from study_render import CASES, make_target
 
-    statfit.inverse_render.SHAPE_LR = ALIGN_SHAPE_LR
+    statfit.render.job.SHAPE_LR = ALIGN_SHAPE_LR
 
-    from statfit.inverse_render import reconstruct
-    from statfit.metrics import visible_vertices
+    from statfit.render.job import reconstruct
+    from statfit.geometry.metrics import visible_vertices
 
     model = ict_model()
     case = next(c for c in CASES if c.name == case_name)

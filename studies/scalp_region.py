@@ -4,7 +4,7 @@
 The real-scans benchmark's people (docs/benchmarks.md §8: an ICT identity from all 100 modes plus an
 expression outside the model, a range scan in a random pose and unit, hair, neck and shoulders worth
 50% of the face's points), fitted as a user would (``--align auto``, the default method) under
-variants of :func:`statfit.model.scalp_triangles`' use:
+variants of :func:`statfit.model.statmodel.scalp_triangles`' use:
 
 - ``none``: the code before the region (the polish's second pass on the face alone, the hair being
   only what lies beyond a face fit's scalp);
@@ -48,9 +48,9 @@ def _use(variant: str) -> None:
     """Set the modules up for ``variant`` (every call, so a worker can run any variant next)."""
     import importlib
 
-    model_module = importlib.import_module("statfit.model")
-    pose_module = importlib.import_module("statfit.global_align")
-    fit_module = importlib.import_module("statfit.register")
+    model_module = importlib.import_module("statfit.model.statmodel")
+    pose_module = importlib.import_module("statfit.register.pose")
+    fit_module = importlib.import_module("statfit.register.job")
     in_pose, in_fit, above, behind = VARIANTS[variant]
     model_module.SCALP_ABOVE, model_module.SCALP_BEHIND = above, behind
     scalp = model_module.scalp_triangles
@@ -64,10 +64,10 @@ def run_case(variant: str, seed: int, clutter: float) -> dict:
     torch.set_num_threads(1)
     import real_scans
     from scipy.spatial.transform import Rotation
-    from statfit.global_align import estimate_pose
-    from statfit.register import register
-    from statfit.scan import Scan
-    from statfit.threads import flush_denormals_everywhere
+    from statfit.register.pose import estimate_pose
+    from statfit.register.job import register
+    from statfit.structures.scan import Scan
+    from statfit.core.threads import flush_denormals_everywhere
 
     flush_denormals_everywhere()
     _use(variant)

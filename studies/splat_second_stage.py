@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import study_splat  # noqa: E402
 
 from statfit import methods  # noqa: E402
-from statfit.settings import Settings  # noqa: E402
+from statfit.core.settings import Settings  # noqa: E402
 
 RESULTS = study_splat.ROOT / "studies" / "results" / "splat_second_stage.json"
 SHAPE = Settings("statistical", 300, 0.05, beta=1000.0, mode_gain=1.0)

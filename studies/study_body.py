@@ -5,7 +5,7 @@ cache outside the repository. Targets: held-out MakeHuman bodies (``statfit synt
 with the asym and expression targets and sliders in the tails, none of which the model saw),
 seeds 1..6, each seen from two views (yaw 30° and −60°, pitch 10°). Every method at its tuned
 render setting (``resolve(method, job="render")``), default rigid alignment (its step on the
-coefficients: ``--align-shape-lr``, shipped ``statfit.inverse_render.SHAPE_LR``).
+coefficients: ``--align-shape-lr``, shipped ``statfit.render.job.SHAPE_LR``).
 
 Metrics, per fit, in mm: mean vertex error over all vertices, the vertices seen in the map and the
 rest ("unseen"): raw; "scaled", after the one thing a normal map cannot tell — the body's size at
@@ -111,7 +111,7 @@ def schedule(method: str) -> dict:
 
 def candidate_stages(name: str):
     """The ``Settings`` stages of a candidate schedule."""
-    from statfit.settings import Settings
+    from statfit.core.settings import Settings
 
     return tuple(Settings(method, iterations, lr, **extra) for method, iterations, lr, extra in CANDIDATES[name])
 
@@ -119,8 +119,8 @@ def candidate_stages(name: str):
 @lru_cache(maxsize=1)
 def body_space():
     """The MakeHuman targets, read once per process (~8 s)."""
-    from statfit.importers.makehuman import read_makehuman
-    from statfit.importers.makehuman_shapes import BodySpace
+    from statfit.model.importers.makehuman import read_makehuman
+    from statfit.model.importers.makehuman_shapes import BodySpace
 
     return BodySpace(read_makehuman(MAKEHUMAN))
 
@@ -128,8 +128,8 @@ def body_space():
 @lru_cache(maxsize=1)
 def body_model():
     """The study's model (built into ``MODEL_CACHE`` the first time, ~25 s), loaded once per process."""
-    from statfit.importers.makehuman_shapes import body_regions, build_body_model
-    from statfit.model import load_model, save_model
+    from statfit.model.importers.makehuman_shapes import body_regions, build_body_model
+    from statfit.model.statmodel import load_model, save_model
 
     if not MODEL_CACHE.exists():
         space = body_space()
@@ -144,8 +144,9 @@ def held_out_body(seed: int) -> np.ndarray:
 
 def view(seed: int, yaw: float, pitch: float, size: int):
     """(model, held-out body (N, 3), camera, its NormalMap) of one study case."""
-    from statfit.normal_map import NormalMap
-    from statfit.synth import camera_for_view, render_target
+    from statfit.structures.normal_map import NormalMap
+    from statfit.synth.sample import camera_for_view
+    from statfit.renderer.images import render_target
 
     model = body_model()
     gt = held_out_body(seed)
@@ -185,13 +186,13 @@ def run_case(task: tuple[int, float, float, str, int], iterations: int | None = 
     import torch
 
     torch.set_num_threads(1)
-    import statfit.inverse_render
-    from statfit.align import umeyama
-    from statfit.inverse_render import reconstruct
-    from statfit.metrics import visible_vertices
+    import statfit.render.job
+    from statfit.geometry.align import umeyama
+    from statfit.render.job import reconstruct
+    from statfit.geometry.metrics import visible_vertices
 
     if align_shape_lr is not None:
-        statfit.inverse_render.SHAPE_LR = align_shape_lr
+        statfit.render.job.SHAPE_LR = align_shape_lr
 
     model, gt, camera, normal_map = view(seed, yaw, pitch, size)
     started = time.perf_counter()
@@ -221,9 +222,9 @@ def trace(seed: int, yaw: float, method: str = "default", size: int = 384, every
     import torch
 
     torch.set_num_threads(threads)
-    from statfit.align import umeyama
-    from statfit.inverse_render import reconstruct
-    from statfit.metrics import visible_vertices
+    from statfit.geometry.align import umeyama
+    from statfit.render.job import reconstruct
+    from statfit.geometry.metrics import visible_vertices
 
     model, gt, camera, normal_map = view(seed, yaw, VIEWS[0][1], size)
     seen = visible_vertices(gt, model.faces, camera)
@@ -246,7 +247,7 @@ def trace(seed: int, yaw: float, method: str = "default", size: int = 384, every
 
 def results_file(align_shape_lr: float | None = None) -> Path:
     """Where the rows of the rigid alignment's step ``align_shape_lr`` (None: the shipped one) go."""
-    from statfit.inverse_render import SHAPE_LR
+    from statfit.render.job import SHAPE_LR
 
     step = SHAPE_LR if align_shape_lr is None else align_shape_lr
     return POSE_STEP_RESULTS if step == 0.01 else RESULTS_DIR / f"study_body_align_shape_lr{step}.json"

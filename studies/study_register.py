@@ -35,12 +35,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from statfit.methods import METHODS
-from statfit.settings import Settings
-from statfit.metrics import evaluate, observed_vertices
-from statfit.model import StatModel, load_model
-from statfit.register import register
-from statfit.synth import load_delta, sample_target, scan_from_view
+from statfit.core.methods import METHODS
+from statfit.core.settings import Settings
+from statfit.geometry.metrics import evaluate, observed_vertices
+from statfit.model.statmodel import StatModel, load_model
+from statfit.register.job import register
+from statfit.synth.sample import load_delta, sample_target, scan_from_view
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))

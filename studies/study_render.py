@@ -27,12 +27,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from statfit.normal_map import NormalMap
-from statfit.inverse_render import reconstruct
-from statfit.settings import Settings
-from statfit.metrics import visible_vertices
-from statfit.model import load_model
-from statfit.synth import camera_for_view, load_delta, render_target, sample_target
+from statfit.structures.normal_map import NormalMap
+from statfit.render.job import reconstruct
+from statfit.core.settings import Settings
+from statfit.geometry.metrics import visible_vertices
+from statfit.model.statmodel import load_model
+from statfit.synth.sample import camera_for_view, load_delta, sample_target
+from statfit.renderer.images import render_target
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from study_register import Case  # noqa: E402  (an identity seed + an expression, seen from yaw/pitch)
@@ -42,7 +43,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from common import ICT  # noqa: E402
 RESULTS_DIR = ROOT / "studies" / "results"
 # Rows per rigid-alignment step on the coefficients (``--align-shape-lr X``, shipped
-# statfit.inverse_render.SHAPE_LR): study_render*.json for 0.01 (the start until session 9, §5),
+# statfit.render.job.SHAPE_LR): study_render*.json for 0.01 (the start until session 9, §5),
 # render_align_shape_lr<X>*.json otherwise (parallel runs: --results <that stem>_<part>.json).
 
 
@@ -157,11 +158,11 @@ def main() -> None:
     args = parser.parse_args()
     if args.align_shape_lr is not None and not 0 < args.align_shape_lr < 10:   # also refuses NaN
         parser.error(f"--align-shape-lr must be a step between 0 and 10, got {args.align_shape_lr}")
-    import statfit.inverse_render
+    import statfit.render.job
 
     if args.align_shape_lr is not None:
-        statfit.inverse_render.SHAPE_LR = args.align_shape_lr
-    step = statfit.inverse_render.SHAPE_LR
+        statfit.render.job.SHAPE_LR = args.align_shape_lr
+    step = statfit.render.job.SHAPE_LR
     stem = "study_render" if step == 0.01 else f"render_align_shape_lr{step}"
     args.results = args.results or RESULTS_DIR / f"{stem}.json"
     if args.report:

@@ -41,11 +41,12 @@ VIEWS, SIZE, TEST_EVERY = 24, 256, 6
 
 def make_case(seed: int, expression: str):
     """Truth (N, 3), faces, the views, and how many training cameras see each vertex (N,)."""
-    from statfit.importers.cache import open_model
-    from statfit.metrics import visible_vertices
-    from statfit.synth import load_delta
-    from statfit.synth_views import generated_albedo, held_out_split, hemisphere_cameras, photograph
-    from statfit.views import View
+    from statfit.model.importers.cache import open_model
+    from statfit.geometry.metrics import visible_vertices
+    from statfit.synth.sample import load_delta
+    from statfit.synth.views import generated_albedo, held_out_split, hemisphere_cameras
+    from statfit.renderer.images import photograph
+    from statfit.structures.views import View
 
     model = open_model(ICT_MODEL)
     rng = np.random.default_rng(seed)
@@ -65,8 +66,8 @@ def run_one(job: tuple[int, str, str]) -> dict:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     import torch
 
-    from statfit.frame import Frame
-    from statfit.splatting import fit_views
+    from statfit.structures.frame import Frame
+    from statfit.splat.job import fit_views
 
     torch.set_num_threads(1)
     seed, expression, method = job

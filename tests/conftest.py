@@ -1,7 +1,7 @@
 """Shared fixtures: the embedded model, the real ICT model (../shared), small random problems.
 
 ``STATFIT_DEVICE=cuda python -m pytest`` runs every job the suite starts (register, render,
-inpaint, batch, CLI) on the GPU: :func:`statfit.device.resolve_device` reads it."""
+inpaint, batch, CLI) on the GPU: :func:`statfit.core.device.resolve_device` reads it."""
 from __future__ import annotations
 
 import multiprocessing
@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 import torch
 
-from statfit.device import DEVICE_ENV
-from statfit.model import default_model_path, load_model
+from statfit.core.device import DEVICE_ENV
+from statfit.model.statmodel import default_model_path, load_model
 
 # The one definition of where the shared data lie, and of the ICT cases, is benchmarks/ (common.py, cases.py).
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))

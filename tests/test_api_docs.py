@@ -13,5 +13,6 @@ def test_api_reference_builds(tmp_path):
     api = runpy.run_path(str(Path(__file__).resolve().parents[1] / "docs" / "api.py"))
     api["build"](tmp_path)
     pages = {p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*.html")}
-    assert {"statfit/methods.html", "statfit/fit.html", "statfit/parametrize.html", "statfit/register.html"} <= pages
-    assert "add_method" in (tmp_path / "statfit" / "methods.html").read_text()
+    assert {"statfit/core/methods.html", "statfit/core/fit.html", "statfit/core/parametrize.html",
+            "statfit/register/job.html"} <= pages
+    assert "add_method" in (tmp_path / "statfit" / "core" / "methods.html").read_text()

@@ -22,8 +22,8 @@ from statfit.batch.plan import expand_inputs, plan_outputs
 from statfit.batch.run import WORKER_DIED, run_batch
 from statfit.errors import StatfitError
 from statfit.io.mesh import points_bytes
-from statfit.methods import resolve
-from statfit.synth import sample_target, scan_from_view
+from statfit.core.methods import resolve
+from statfit.synth.sample import sample_target, scan_from_view
 
 FAST = ["--iterations", "60"]
 

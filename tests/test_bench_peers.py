@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from statfit.frame import Frame
-from statfit.synth import sample_target, scan_from_view
+from statfit.structures.frame import Frame
+from statfit.synth.sample import sample_target, scan_from_view
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import peers  # noqa: E402

@@ -19,8 +19,8 @@ def test_filter_scaling_measures_every_solver_and_plots(tmp_path, monkeypatch):
     monkeypatch.setitem(filter_scaling.KS, "quick", (4,))
     monkeypatch.setattr(filter_scaling, "BANDWIDTH_BYTES", 2**22)
     results = filter_scaling.measure(quick=True)
-    from statfit.solvers import SOLVERS
-    from statfit.threads import available_cores
+    from statfit.core.solvers import SOLVERS
+    from statfit.core.threads import available_cores
 
     thread_counts = {1, available_cores()}
     assert {r["solver"] for r in results["laplacian"]} == set(SOLVERS)

@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from statfit.align import umeyama
+from statfit.geometry.align import umeyama
 from statfit.errors import StatfitError
-from statfit.importers.makehuman import MAX_FILE_BYTES, read_makehuman
-from statfit.importers.makehuman_shapes import MACRO_CORNERS, BodySpace, _hat_weights, body_regions, build_body_model
+from statfit.model.importers.makehuman import MAX_FILE_BYTES, read_makehuman
+from statfit.model.importers.makehuman_shapes import MACRO_CORNERS, BodySpace, _hat_weights, body_regions, build_body_model
 from statfit.io.mesh import read_mesh
-from statfit.model import load_model
+from statfit.model.statmodel import load_model
 from test_cli import run
 
 from common import MAKEHUMAN

@@ -6,9 +6,9 @@ import pytest
 import torch
 import trimesh
 
-from statfit.filters import HybridFilter, LaplacianFilter, StatisticalFilter, beta_with_power
-from statfit.laplacian import laplacian, smoothing_matrix
-from statfit.solvers import SOLVERS
+from statfit.core.filters import HybridFilter, LaplacianFilter, StatisticalFilter, beta_with_power
+from statfit.core.laplacian import laplacian, smoothing_matrix
+from statfit.core.solvers import SOLVERS
 
 
 def random_basis(rng, n3: int, k: int) -> np.ndarray:

@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from statfit.register import register
-from statfit.synth import sample_target, scan_from_view
+from statfit.register.job import register
+from statfit.synth.sample import sample_target, scan_from_view
 
 
 def test_register_snapshots_are_in_the_scan_frame(embedded_model):

@@ -6,14 +6,14 @@ import pytest
 import torch
 import trimesh
 
-from statfit.closest import ClosestPointQuery
-from statfit.frame import Frame
-from statfit.gauss_newton import fit_coefficients
-from statfit.methods import resolve
+from statfit.geometry.closest import ClosestPointQuery
+from statfit.structures.frame import Frame
+from statfit.core.gauss_newton import fit_coefficients
+from statfit.core.methods import resolve
 from statfit.objectives.scan import ScanObjective
-from statfit.register import register
-from statfit.settings import FitSpace
-from statfit.synth import scan_from_view
+from statfit.register.job import register
+from statfit.core.settings import FitSpace
+from statfit.synth.sample import scan_from_view
 
 
 def _scan_objective(model, points: np.ndarray, frame: Frame) -> ScanObjective:
@@ -96,7 +96,7 @@ def test_pca_method_is_the_closed_form_stage_and_beats_adam_at_equal_time(embedd
 
 def test_gauss_newton_needs_a_least_squares_objective(embedded_model):
     from statfit.errors import StatfitError
-    from statfit.stages import run_stages
+    from statfit.core.stages import run_stages
 
     class Plain:
         def reset(self):

@@ -7,11 +7,11 @@ import torch
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from statfit.align import Similarity, icp, umeyama
-from statfit.closest import ClosestPointQuery, closest_on_triangles
+from statfit.geometry.align import Similarity, icp, umeyama
+from statfit.geometry.closest import ClosestPointQuery, closest_on_triangles
 from statfit.objectives.scan import ScanObjective
-from statfit.filters import StatisticalFilter
-from statfit.parametrize import FilteredVertices, PCACoefficients, RegularizedVertices
+from statfit.core.filters import StatisticalFilter
+from statfit.core.parametrize import FilteredVertices, PCACoefficients, RegularizedVertices
 
 
 def test_closest_points_match_brute_force(embedded_model, rng):

@@ -11,11 +11,11 @@ import scipy.sparse
 
 from model_files import (random_smpl_arrays, write_bfm_h5, write_flame_masks, write_flame_pickle, write_ict_folder,
                          write_obj)
-from statfit.build import build_model
+from statfit.model.build import build_model
 from statfit.errors import StatfitError
-from statfit.importers import cache, ict, import_model
-from statfit.importers.safe_pickle import load_pickle
-from statfit.model import load_model, save_model, units_guess
+from statfit.model.importers import cache, ict, import_model
+from statfit.model.importers.safe_pickle import load_pickle
+from statfit.model.statmodel import load_model, save_model, units_guess
 from conftest import ICT_DIR
 
 

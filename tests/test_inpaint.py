@@ -9,7 +9,7 @@ import torch
 from PIL import Image
 
 from statfit.errors import StatfitError
-from statfit.filters import HybridFilter, LaplacianFilter
+from statfit.core.filters import HybridFilter, LaplacianFilter
 from statfit.io.image import read_charts, read_image, read_mask, write_image
 from statfit.texture.grid import grid_laplacian
 from statfit.texture.inpaint import inpaint, inpaint_settings, model_reconstruction

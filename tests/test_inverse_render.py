@@ -6,16 +6,17 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from statfit.align import Similarity
-from statfit.camera import Camera
+from statfit.geometry.align import Similarity
+from statfit.structures.camera import Camera
 from statfit.errors import StatfitError
-from statfit.frame import Frame
-from statfit.pose import camera_in_frame
-from statfit.inverse_render import camera_space_normals, downsampled, reconstruct
-from statfit.normal_map import NormalMap
+from statfit.structures.frame import Frame
+from statfit.core.pose import camera_in_frame
+from statfit.render.job import camera_space_normals, downsampled, reconstruct
+from statfit.structures.normal_map import NormalMap
 from statfit.objectives.normals import NormalMapObjective
-from statfit.pose import fit_pose
-from statfit.synth import camera_for_view, render_target
+from statfit.core.pose import fit_pose
+from statfit.synth.sample import camera_for_view
+from statfit.renderer.images import render_target
 
 SIZE = 128
 

@@ -1,7 +1,11 @@
-"""The house's layering, enforced: structures ← io ← model ← core ← jobs ← cli.
+"""The house's layering, enforced by folder: each folder of ``statfit/`` is one layer.
 
-Each module may import from its own layer and the layers before it, never from a later one; the
-core (the maths and the fitting loop) does not read or write files, so it never imports io.
+    structures ← renderer ← geometry ← io ← model ← core ← jobs ← batch ← cli
+
+A module may import from its own layer and the layers before it, never from a later one. Within
+the jobs layer each job is its own room: a job never imports another job (what two jobs share
+lives below them). The core and the geometry do not read or write files, so they never import io;
+nothing in the library imports the CLI.
 """
 from __future__ import annotations
 
@@ -9,27 +13,35 @@ import ast
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-LAYERS = ("structures", "io", "model", "core", "jobs", "cli")
-# Module-name prefixes per layer; the longest matching prefix decides, and "core" is the rest of statfit.
-PREFIXES = {
-    "statfit.errors": "structures", "statfit.frame": "structures", "statfit.camera": "structures",
-    "statfit.normal_map": "structures", "statfit.scan": "structures", "statfit.views": "structures",
-    "statfit.io": "io",
-    "statfit.model": "model", "statfit.pca": "model", "statfit.build": "model", "statfit.importers": "model",
-    "statfit.texture.model": "model", "statfit.texture.resample": "model",
-    "statfit.register": "jobs", "statfit.inverse_render": "jobs", "statfit.synth": "jobs", "statfit.scanner": "jobs",
-    "statfit.preview": "jobs", "statfit.splatting": "jobs", "statfit.synth_views": "jobs",
-    "statfit.splat_preview": "jobs",
-    "statfit.texture.inpaint": "jobs", "statfit.texture.preview": "jobs", "statfit.batch": "jobs",
-    "statfit_cli": "cli",
+LAYERS = ("structures", "renderer", "geometry", "io", "model", "core", "jobs", "batch", "cli")
+# Top-level names of statfit/ and the layer each one is.
+FOLDERS = {
+    "errors": "structures", "structures": "structures",
+    "renderer": "renderer",
+    "geometry": "geometry",
+    "io": "io",
+    "model": "model",
+    "core": "core", "objectives": "core",
+    "register": "jobs", "render": "jobs", "splat": "jobs", "synth": "jobs", "texture": "jobs",
+    "batch": "batch",
 }
+JOBS = {name for name, kind in FOLDERS.items() if kind == "jobs"}
+
+
+def room(module: str) -> str:
+    """The top-level folder (or module) of statfit a module lives in; 'cli' for the CLI, '' for the
+    package's front door."""
+    if module.startswith("statfit_cli"):
+        return "cli"
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else ""
 
 
 def layer(module: str) -> str:
     if module == "statfit":  # the package's front door re-exports the jobs
-        return "jobs"
-    matches = [p for p in PREFIXES if module == p or module.startswith(p + ".")]
-    return PREFIXES[max(matches, key=len)] if matches else "core"
+        return "batch"
+    name = room(module)
+    return "cli" if name == "cli" else FOLDERS[name]
 
 
 def modules() -> dict[str, Path]:
@@ -53,6 +65,12 @@ def imports(path: Path) -> set[str]:
     return {n for n in names if n.split(".")[0] in ("statfit", "statfit_cli")}
 
 
+def test_every_folder_of_the_library_has_a_layer():
+    tops = {p.stem for p in (ROOT / "statfit").iterdir()
+            if (p.is_dir() and (p / "__init__.py").exists()) or (p.suffix == ".py" and p.stem != "__init__")}
+    assert tops == set(FOLDERS), f"unplaced: {sorted(tops - set(FOLDERS))}, gone: {sorted(set(FOLDERS) - tops)}"
+
+
 def test_no_module_imports_a_later_layer():
     broken = []
     for name, path in modules().items():
@@ -63,9 +81,15 @@ def test_no_module_imports_a_later_layer():
     assert not broken, "\n".join(broken)
 
 
-def test_the_core_never_imports_io():
-    broken = [f"{name} imports {imported}" for name, path in modules().items() if layer(name) == "core"
-              for imported in imports(path) if layer(imported) == "io"]
+def test_a_job_never_imports_another_job():
+    broken = [f"{name} imports {imported}" for name, path in modules().items() if room(name) in JOBS
+              for imported in imports(path) if room(imported) in JOBS and room(imported) != room(name)]
+    assert not broken, "\n".join(broken)
+
+
+def test_the_core_and_geometry_never_import_io():
+    broken = [f"{name} imports {imported}" for name, path in modules().items()
+              if layer(name) in ("core", "geometry", "renderer") for imported in imports(path) if layer(imported) == "io"]
     assert not broken, "\n".join(broken)
 
 
@@ -75,6 +99,8 @@ def test_the_library_never_imports_the_cli():
     assert not broken
 
 
-def test_the_rule_catches_a_violation():
-    assert LAYERS.index(layer("statfit.register")) > LAYERS.index(layer("statfit.filters"))
-    assert layer("statfit.io.mesh") == "io" and layer("statfit.importers.cache") == "model"
+def test_the_rules_catch_a_violation():
+    assert LAYERS.index(layer("statfit.register.job")) > LAYERS.index(layer("statfit.core.filters"))
+    assert layer("statfit.io.mesh") == "io" and layer("statfit.model.importers.cache") == "model"
+    assert room("statfit.render.job") != room("statfit.renderer.raster")
+    assert room("statfit.render.job") in JOBS and room("statfit.renderer.raster") not in JOBS

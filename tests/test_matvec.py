@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 import torch
 
-from statfit.matvec import expand, project
-from statfit.threads import intra_op_threads
+from statfit.core.matvec import expand, project
+from statfit.core.threads import intra_op_threads
 
 
 @pytest.mark.parametrize("threads", [1, 2, 3])

@@ -12,10 +12,10 @@ import pytest
 import torch
 
 from statfit.errors import StatfitError
-from statfit.methods import METHODS, Method, add_method, build, filtered_method, resolve
-from statfit.register import register
-from statfit.settings import FitSpace, Settings
-from statfit.synth import sample_target, scan_from_view
+from statfit.core.methods import METHODS, Method, add_method, build, filtered_method, resolve
+from statfit.register.job import register
+from statfit.core.settings import FitSpace, Settings
+from statfit.synth.sample import sample_target, scan_from_view
 
 BAD_SETTINGS = {
     "negative β": dict(beta=-1.0), "NaN β": dict(beta=math.nan), "negative λ": dict(lam=-1.0),
@@ -64,7 +64,7 @@ def test_a_pipelines_step_size_is_its_gradient_stages():
 def wiener_filter(settings: Settings, space: FitSpace, x0: torch.Tensor):
     """The docs' example (docs/method.md, "Adding a method"): the statistical filter with Wiener
     gains var_j / (var_j + var_1 / β) instead of (std_j / std_1)^γ."""
-    from statfit.filters import StatisticalFilter
+    from statfit.core.filters import StatisticalFilter
 
     variance = space.std**2
     return StatisticalFilter(space.basis_t, settings.beta, mode_gain=variance / (variance + variance[0] / settings.beta))
@@ -99,9 +99,9 @@ def test_a_hand_written_loop_drives_any_parametrisation(embedded_model):
 
 
 PLUGIN = """
-from statfit.methods import Method, add_method, filtered_method
-from statfit.settings import Settings
-from statfit.filters import StatisticalFilter
+from statfit.core.methods import Method, add_method, filtered_method
+from statfit.core.settings import Settings
+from statfit.core.filters import StatisticalFilter
 
 def half_gain(settings, space, x0):
     return StatisticalFilter(space.basis_t, settings.beta, mode_gain=0.5 * (space.std / space.std[0]))
@@ -174,7 +174,7 @@ def test_a_coefficient_prior_is_for_pcas_adam_stage_only(settings):
 
 def test_pcas_coefficient_prior_pulls_each_coefficient_to_zero(embedded_model):
     """w · mean(c²): value and gradient 2 w c / K in closed form, beside the data term's."""
-    from statfit.parametrize import PCACoefficients
+    from statfit.core.parametrize import PCACoefficients
 
     space = FitSpace.of(embedded_model)
     k = len(space.std)

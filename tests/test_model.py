@@ -11,7 +11,7 @@ import pytest
 import trimesh
 
 from statfit.errors import StatfitError
-from statfit.model import default_model_path, load_model, model_from_arrays
+from statfit.model.statmodel import default_model_path, load_model, model_from_arrays
 
 
 def test_basis_is_orthonormal_and_spans_shapedirs(rng):

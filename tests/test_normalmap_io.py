@@ -8,7 +8,7 @@ import pytest
 from statfit.errors import StatfitError
 from statfit.io.normalmap import (apply_mask, check_camera_fits, read_camera, read_normal_map, write_camera,
                                   write_normal_map)
-from statfit.camera import Camera
+from statfit.structures.camera import Camera
 
 
 @pytest.fixture

@@ -6,7 +6,7 @@ import math
 import pytest
 import torch
 
-from statfit.optim import UniformAdam
+from statfit.core.optim import UniformAdam
 
 
 def test_first_two_steps_by_hand():

@@ -1,7 +1,7 @@
 """What a wheel ships: every package of the source tree, not only what an editable install finds.
 
 An editable install resolves ``statfit.<anything>`` from the source folder, so a subpackage missing
-from pyproject's list passes every other test and is left out of ``pip install .`` (``statfit.splat``
+from pyproject's list passes every other test and is left out of ``pip install .`` (``statfit.renderer``
 was: ``statfit splat`` failed to import from a wheel).
 """
 from __future__ import annotations

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from statfit.errors import StatfitError
-from statfit.pca import principal_components
+from statfit.model.pca import principal_components
 
 
 def _samples(rng, m=300, d=900, k=5, noise=1e-3):

@@ -9,18 +9,18 @@ import pytest
 import torch
 import trimesh
 
-from statfit.align import Similarity
-from statfit.closest import ClosestPointQuery, open_edges
+from statfit.geometry.align import Similarity
+from statfit.geometry.closest import ClosestPointQuery, open_edges
 from statfit.errors import StatfitError
-from statfit.global_align import estimate_pose
+from statfit.register.pose import estimate_pose
 from statfit.io.landmarks import read_landmarks
 from statfit.io.mesh import read_mesh
 from statfit.objectives.scan import ScanObjective
-from statfit.metrics import surface_distance
-from statfit.register import register
-from statfit.scan import Scan, estimate_normals
-from statfit.scanner import neck_tube, realistic_scan
-from statfit.synth import scan_from_view
+from statfit.geometry.metrics import surface_distance
+from statfit.register.job import register
+from statfit.structures.scan import Scan, estimate_normals
+from statfit.synth.scanner import neck_tube, realistic_scan
+from statfit.synth.sample import scan_from_view
 
 from conftest import run_cli
 
@@ -30,7 +30,7 @@ def _angle(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def _ict_with_inner_landmarks(ict_model):
-    from statfit.model import with_landmarks
+    from statfit.model.statmodel import with_landmarks
     from conftest import ICT_DIR
 
     return with_landmarks(ict_model, np.load(ICT_DIR / "ict_face_identity.npz")["landmarks68"][17:68])
@@ -42,7 +42,7 @@ def _ict_person(model, seed: int, units: str = "mm", posed: bool = True, clutter
     (docs/benchmarks.md §8): an identity sample plus an expression the model lacks, with hair,
     neck and shoulders worth ``clutter`` of the face's points, from a yaw in ±45°; ``scanner``: the
     scanner's own draws (default: the person's generator goes on)."""
-    from statfit.synth import load_delta
+    from statfit.synth.sample import load_delta
     from conftest import ICT_DIR
 
     expressions = ICT_DIR / "ict_face_expressions.npz"
@@ -107,7 +107,7 @@ def test_synth_scan_realistic_writes_a_mesh_its_truth_and_landmarks(tmp_path):
     assert code == 0, err
     vertices, faces = read_mesh(scan)
     truth, _ = read_mesh(gt)
-    from statfit.model import default_model_path, load_model
+    from statfit.model.statmodel import default_model_path, load_model
     model = load_model(default_model_path())
     assert np.allclose(read_landmarks(marks), truth[model.landmarks])
     assert np.ptp(truth, axis=0).max() == pytest.approx(100 * np.ptp(model.template, axis=0).max(), rel=0.3)
@@ -182,10 +182,10 @@ def test_pose_units_and_offset_are_found_without_landmarks(embedded_model, seed,
 def test_the_points_beyond_the_face_fits_scalp_are_the_hair(embedded_model):
     """On the true shape and pose, what the polish leaves out as hair is the hair: every point the
     scanner took off the hair layer (0.056–0.104 radii out) and none of the head's."""
-    from statfit.frame import Frame
-    from statfit.global_align import POSE_FACE_RADIUS
-    from statfit.hair import hair_suspects
-    from statfit.model import face_triangles
+    from statfit.structures.frame import Frame
+    from statfit.register.pose import POSE_FACE_RADIUS
+    from statfit.register.hair import hair_suspects
+    from statfit.model.statmodel import face_triangles
 
     model = embedded_model
     rng = np.random.default_rng(3)
@@ -206,7 +206,7 @@ def test_the_scalp_lies_above_and_behind_the_face(ict_model, embedded_model):
     region nor landmarks has none."""
     import dataclasses
 
-    from statfit.model import scalp_triangles
+    from statfit.model.statmodel import scalp_triangles
 
     model = _ict_with_inner_landmarks(ict_model)
     scalp = scalp_triangles(model)
@@ -225,7 +225,7 @@ def test_the_scalp_lies_above_and_behind_the_face(ict_model, embedded_model):
 def test_hair_is_what_lies_beyond_the_offset_off_the_face():
     """On a unit sphere, points pushed out along the normal by 0.08 (beyond HAIR_OFFSET 0.05) off the
     face are hair; 0.02 out, pushed in, or over the face (z > 0.5) are not."""
-    from statfit.hair import HAIR_OFFSET, hair_suspects
+    from statfit.register.hair import HAIR_OFFSET, hair_suspects
 
     sphere = trimesh.creation.icosphere(4)
     rng = np.random.default_rng(0)
@@ -250,7 +250,7 @@ def test_the_fit_leaves_the_hair_out_and_fits_the_rest_of_the_head(embedded_mode
     as near as on the clean scan."""
     import importlib
 
-    hair_module = importlib.import_module("statfit.hair")
+    hair_module = importlib.import_module("statfit.register.hair")
     model = embedded_model
     face = model.regions["face"]
     errors = {}
@@ -271,7 +271,7 @@ def test_the_fit_leaves_the_hair_out_and_fits_the_rest_of_the_head(embedded_mode
 def test_hair_does_not_tilt_the_pose(embedded_model):
     """Scans whose only clutter is hair: posed as well as with the hair cut out of the scan, and
     better than when the last polish fits the hair too (measured: 0.14–0.24° against 0.14–0.51°)."""
-    import statfit.hair as hair_module
+    import statfit.register.hair as hair_module
 
     model = embedded_model
     angles = {"hair left out": [], "hair fitted": [], "hair cut out": []}
@@ -297,7 +297,7 @@ def test_on_a_cluttered_scan_the_pose_leaves_the_scalp_to_the_hair(ict_model):
     neck and shoulders: with the scalp region left out of the polish, the pose lands nearer the
     truth than when only the points beyond a face fit's scalp are (docs/studies.md §16, "The scalp
     as a region"; measured 0.34° against 0.88° on these four, 0.39° against 2.00° at worst)."""
-    import statfit.global_align as global_align
+    import statfit.register.pose as global_align
 
     model = _ict_with_inner_landmarks(ict_model)
     angles: dict[str, list[float]] = {"scalp left out": [], "beyond the face fit only": []}
@@ -351,8 +351,8 @@ def test_register_cli_fits_a_posed_cluttered_mesh_scan_and_reports_the_pose(tmp_
     assert 0.05 < pose["hair_share"] < 0.6          # the hair left out, the rest of the head fitted
     fitted, _ = read_mesh(fit)
     truth, _ = read_mesh(gt)
-    from statfit.align import umeyama
-    from statfit.model import default_model_path, load_model
+    from statfit.geometry.align import umeyama
+    from statfit.model.statmodel import default_model_path, load_model
     model = load_model(default_model_path())
     face = model.regions["face"]
     # the mean shape placed on the true face by the best similarity: what no pose search can beat

@@ -9,11 +9,12 @@ import pytest
 import torch
 import trimesh
 
-from statfit.inverse_render import camera_space_normals
-from statfit.normal_map import NormalMap
-from statfit.model import region_triangles
+from statfit.render.job import camera_space_normals
+from statfit.structures.normal_map import NormalMap
+from statfit.model.statmodel import region_triangles
 from statfit.objectives.normals import NormalMapObjective
-from statfit.synth import camera_for_view, render_target
+from statfit.synth.sample import camera_for_view
+from statfit.renderer.images import render_target
 from test_cli import run
 from test_cli_models import _threads, mean_error  # noqa: F401 (_threads: one torch thread here too)
 

@@ -6,9 +6,9 @@ from functools import lru_cache
 import numpy as np
 import pytest
 
-from statfit.metrics import evaluate, observed_vertices
-from statfit.register import register
-from statfit.synth import sample_target, scan_from_view
+from statfit.geometry.metrics import evaluate, observed_vertices
+from statfit.register.job import register
+from statfit.synth.sample import sample_target, scan_from_view
 
 pytestmark = pytest.mark.slow
 

@@ -27,10 +27,10 @@ def fit_report(case: str, method: str, preset: str) -> dict:
     """Error report of one registration against the ground truth (runs in a worker process)."""
     import torch
 
-    from statfit.metrics import evaluate, observed_vertices
-    from statfit.model import load_model
-    from statfit.register import register
-    from statfit.synth import load_delta, sample_target, scan_from_view
+    from statfit.geometry.metrics import evaluate, observed_vertices
+    from statfit.model.statmodel import load_model
+    from statfit.register.job import register
+    from statfit.synth.sample import load_delta, sample_target, scan_from_view
 
     torch.set_num_threads(1)
     model = load_model(ICT_DIR / "ict_face_identity.npz")

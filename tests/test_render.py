@@ -1,4 +1,4 @@
-"""Differentiable rasteriser (statfit.render): camera, visibility against a ray caster,
+"""Differentiable rasteriser (statfit.renderer): camera, visibility against a ray caster,
 perspective-correct interpolation, antialiasing, and gradients against finite differences."""
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import trimesh
 
 from conftest import ICT_DIR
 from statfit.errors import StatfitError
-from statfit.render import (Camera, EdgeCrossings, MeshAdjacency, interpolate, normal_image, rasterize, render_normals,
+from statfit.renderer import (Camera, EdgeCrossings, MeshAdjacency, interpolate, normal_image, rasterize, render_normals,
                             silhouette_crossings, vertex_normals)
 
 ICT_PATH = ICT_DIR / "ict_face_identity.npz"

@@ -32,10 +32,11 @@ def fit_error(method: str, preset: str) -> float:
     """Relative mean vertex error of one fit of the jaw-open case (runs in a worker process)."""
     import torch
 
-    from statfit.normal_map import NormalMap
-    from statfit.inverse_render import reconstruct
-    from statfit.model import load_model
-    from statfit.synth import camera_for_view, load_delta, render_target, sample_target
+    from statfit.structures.normal_map import NormalMap
+    from statfit.render.job import reconstruct
+    from statfit.model.statmodel import load_model
+    from statfit.synth.sample import camera_for_view, load_delta, sample_target
+    from statfit.renderer.images import render_target
 
     torch.set_num_threads(1)
     model = load_model(ICT_DIR / "ict_face_identity.npz")

@@ -15,8 +15,8 @@ from conftest import run_cli
 from statfit.io.image import read_image, write_image
 from statfit.io.mesh import read_mesh
 from statfit.objectives.images import ImageObjective, TrainingView, psnr, ssim
-from statfit.splat import MeshSplats
-from statfit.synth_views import held_out_split, hemisphere_cameras
+from statfit.renderer import MeshSplats
+from statfit.synth.views import held_out_split, hemisphere_cameras
 
 
 @pytest.fixture(scope="module")

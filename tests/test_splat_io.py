@@ -10,13 +10,13 @@ import pytest
 import torch
 import trimesh
 
-from statfit.camera import Camera
+from statfit.structures.camera import Camera
 from statfit.errors import StatfitError
 from statfit.io import views
 from statfit.io.image import write_image
 from statfit.io import splats as splat_io
 from statfit.io.splats import RECORD
-from statfit.splatting import splat_records, splats_from_records
+from statfit.splat.job import splat_records, splats_from_records
 
 
 def splats_bytes(splats, vertices):
@@ -26,7 +26,7 @@ def splats_bytes(splats, vertices):
 def read_splats(path, faces, dtype=torch.float32):
     return splats_from_records(splat_io.read_splats(path, len(faces)), faces, dtype)
 from statfit.io.views import CAMERAS_FILE, read_views, views_json
-from statfit.splat.binding import MeshSplats
+from statfit.renderer.binding import MeshSplats
 
 VERTICES = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
 FACES = torch.tensor([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])

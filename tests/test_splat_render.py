@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from statfit.camera import Camera
+from statfit.structures.camera import Camera
 from statfit.errors import StatfitError
-from statfit.splat import MeshSplats, Surfels, render_surfels
+from statfit.renderer import MeshSplats, Surfels, render_surfels
 
 
 def _camera(width: int = 14, height: int = 11) -> Camera:

@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from statfit.errors import StatfitError
-import statfit.threads as threads_module
-from statfit.threads import PARALLEL_WORK, available_cores, choose_threads, idle_cores, intra_op_threads
+import statfit.core.threads as threads_module
+from statfit.core.threads import PARALLEL_WORK, available_cores, choose_threads, idle_cores, intra_op_threads
 
 
 def test_small_fits_run_on_one_thread_large_ones_on_every_idle_core(monkeypatch):
@@ -58,7 +58,7 @@ def test_thread_count_is_restored():
 
 PROBE = """
 import torch
-from statfit.threads import workers_flush_denormals
+from statfit.core.threads import workers_flush_denormals
 {setup}
 torch.set_num_threads(2)
 print(workers_flush_denormals())
@@ -67,7 +67,7 @@ print(workers_flush_denormals())
 
 @pytest.mark.parametrize("setup, expected", [
     # The CLI's start-up: the flag is set before the first parallel kernel, so the workers inherit it.
-    ("from statfit.threads import flush_denormals_everywhere; flush_denormals_everywhere()", "True"),
+    ("from statfit.core.threads import flush_denormals_everywhere; flush_denormals_everywhere()", "True"),
     # torch's own behaviour, which is why the CLI does it first: set later, it reaches this thread only.
     ("torch.set_num_threads(2); torch.ones(1 << 18).mul(2); torch.set_flush_denormal(True)", "False"),
 ])
@@ -80,7 +80,7 @@ def test_subnormals_are_flushed_on_every_worker_thread(setup, expected):
 
 
 def test_the_cli_flushes_before_any_parallel_kernel():
-    code = ("import sys, torch; from statfit_cli import main as m; from statfit.threads import workers_flush_denormals;"
+    code = ("import sys, torch; from statfit_cli import main as m; from statfit.core.threads import workers_flush_denormals;"
             "sys.argv=['statfit', '--help'];\ntry: m.main()\nexcept SystemExit: pass\n"
             "torch.set_num_threads(2); print(workers_flush_denormals(), file=sys.stderr)")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)

@@ -14,14 +14,14 @@ from typing import Any
 
 from statfit import __version__
 from statfit.errors import StatfitError
-from statfit.importers.cache import open_model
-from statfit.inverse_render import reconstruct
+from statfit.model.importers.cache import open_model
+from statfit.render.job import reconstruct
 from statfit.io.mesh import load_scan, mesh_bytes
 from statfit.io.normalmap import camera_for_map, read_normal_map
-from statfit.model import StatModel
-from statfit.register import register
-from statfit.settings import Settings
-from statfit.threads import flush_denormals_everywhere, limit_threads
+from statfit.model.statmodel import StatModel
+from statfit.register.job import register
+from statfit.core.settings import Settings
+from statfit.core.threads import flush_denormals_everywhere, limit_threads
 
 COMMANDS = ("register", "render")
 

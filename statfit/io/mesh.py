@@ -12,7 +12,7 @@ import trimesh
 
 from statfit.errors import StatfitError
 from statfit.io.files import existing_file
-from statfit.scan import Scan
+from statfit.structures.scan import Scan
 
 MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off")
 # The largest mesh or point-cloud file read, and how much of a file its header may take.

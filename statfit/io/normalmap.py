@@ -15,8 +15,8 @@ from statfit.errors import StatfitError
 from statfit.io.exr import read_exr, write_exr
 from statfit.io.files import existing_file
 from statfit.io.mesh import write_atomic
-from statfit.camera import Camera
-from statfit.normal_map import NormalMap
+from statfit.structures.camera import Camera
+from statfit.structures.normal_map import NormalMap
 
 
 def read_normal_map(path: str | Path) -> NormalMap:

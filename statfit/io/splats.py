@@ -1,4 +1,4 @@
-"""Splats bound to a mesh (:class:`statfit.splat.MeshSplats`) in and out, as a binary
+"""Splats bound to a mesh (:class:`statfit.renderer.MeshSplats`) in and out, as a binary
 little-endian PLY that generic point viewers open as a coloured point cloud.
 
 One ``vertex`` element per splat, float32 unless said: ``x y z`` the world centre on the mesh it

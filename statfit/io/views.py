@@ -22,11 +22,11 @@ from typing import Any
 
 import numpy as np
 
-from statfit.camera import Camera
+from statfit.structures.camera import Camera
 from statfit.errors import StatfitError
 from statfit.io.files import existing_file
 from statfit.io.image import read_image, read_mask
-from statfit.views import SPLITS, View
+from statfit.structures.views import SPLITS, View
 
 CAMERAS_FILE = "cameras.json"
 FORMAT = "statfit-views"

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from statfit.camera import Camera
-from statfit.splat import MeshSplats, render_surfels
+from statfit.structures.camera import Camera
+from statfit.renderer import MeshSplats, render_surfels
 
 SSIM_WEIGHT = 0.2
 MASK_WEIGHT = 0.1

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import torch
 
-from statfit.render import Camera, MeshAdjacency, fragment_normals, rasterize, silhouette_crossings
+from statfit.renderer import Camera, MeshAdjacency, fragment_normals, rasterize, silhouette_crossings
 
 SILHOUETTE_WEIGHT = 1.0
 

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import torch
 
-from statfit.closest import ClosestPointQuery, SurfacePoints
+from statfit.geometry.closest import ClosestPointQuery, SurfacePoints
 
 
 # A point farther than this many robust standard deviations of the distances is not on the template.

@@ -1,14 +1,7 @@
-"""Differentiable triangle rasterisation in pure torch (CPU and CUDA) with silhouette gradients.
+"""The ``statfit render`` job: a model's template fitted to one normal map (inverse rendering).
 
-``rasterize`` → ``Fragments`` (z-buffer ids, differentiable perspective-correct barycentrics),
-``interpolate`` vertex attributes, ``antialias`` (or ``silhouette_crossings(...).blend``) for
-gradients at silhouettes, ``render_normals`` for the whole chain (normal map and mask).
+- :mod:`statfit.render.job`: the fit (:func:`~statfit.render.job.reconstruct`).
+- :mod:`statfit.render.preview`: the preview picture (target, fit, error, side and back views).
+
+The rasteriser itself is shared with other jobs and lives in :mod:`statfit.renderer`.
 """
-from statfit.render.silhouette import EdgeCrossings, MeshAdjacency, antialias, silhouette_crossings
-from statfit.camera import Camera
-from statfit.render.raster import Fragments, interpolate, interpolate_fragments, rasterize
-from statfit.render.shading import fragment_normals, normal_image, render_normals, vertex_normals
-
-__all__ = ["Camera", "EdgeCrossings", "Fragments", "MeshAdjacency", "antialias", "interpolate",
-           "fragment_normals", "interpolate_fragments", "normal_image", "rasterize", "render_normals", "silhouette_crossings",
-           "vertex_normals"]

@@ -1,6 +1,5 @@
-"""Gaussian splatting on meshes: 2D Gaussian surfels (:mod:`statfit.splat.raster`) bound to a
-mesh's triangles (:mod:`statfit.splat.binding`)."""
-from statfit.splat.binding import MeshSplats
-from statfit.splat.raster import SplatImage, Surfels, render_surfels
+"""The ``statfit splat`` job: photographs → a mesh with Gaussian splats bound to its triangles.
 
-__all__ = ["MeshSplats", "SplatImage", "Surfels", "render_surfels"]
+- :mod:`statfit.splat.job`: the fit (:func:`~statfit.splat.job.splat`).
+- :mod:`statfit.splat.preview`: the held-out view's preview picture.
+"""

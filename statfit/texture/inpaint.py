@@ -14,12 +14,12 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
-from statfit.device import resolve_device
+from statfit.core.device import resolve_device
 from statfit.errors import StatfitError
-from statfit.fit import Progress
-from statfit.methods import METHODS, resolve
-from statfit.settings import FitSpace, Settings
-from statfit.stages import run_stages
+from statfit.core.fit import Progress
+from statfit.core.methods import METHODS, resolve
+from statfit.core.settings import FitSpace, Settings
+from statfit.core.stages import run_stages
 from statfit.texture.grid import grid_laplacian
 from statfit.texture.model import TextureModel
 from statfit.texture.resample import resize_image, resize_labels, resize_mask
@@ -62,7 +62,7 @@ class VisibleL1:
 
 def inpaint_settings(method: str, iterations: int | None = None, lr: float | None = None, beta: float | None = None,
                      lam: float | None = None) -> Settings:
-    """The tuned settings of ``method`` for inpainting (:data:`statfit.methods.METHODS`) with the given
+    """The tuned settings of ``method`` for inpainting (:data:`statfit.core.methods.METHODS`) with the given
     values replaced (validated)."""
     (settings,) = resolve(method, job="inpaint", iterations=iterations, lr=lr, beta=beta, lam=lam)
     return settings

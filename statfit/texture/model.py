@@ -17,8 +17,8 @@ import numpy as np
 from statfit.errors import StatfitError
 from statfit.io.mesh import write_atomic
 from statfit.io.npz import npz_bytes, read_npz
-from statfit.model import _float_array
-from statfit.pca import principal_components, with_fixed_signs
+from statfit.model.statmodel import _float_array
+from statfit.model.pca import principal_components, with_fixed_signs
 from statfit.errors import StatfitWarning
 from statfit.texture.resample import resize_image
 
@@ -72,7 +72,7 @@ def texture_model_from_arrays(v_template: np.ndarray, shapedirs: np.ndarray, ima
                               source: str = "<arrays>") -> TextureModel:
     """Validate contract arrays and derive the orthonormal basis from the Gram matrix of
     ``shapedirs`` (K × K, formed blockwise in float64: cheap for the tall matrices of textures).
-    Each direction's sign is fixed as in :func:`statfit.pca.principal_components`."""
+    Each direction's sign is fixed as in :func:`statfit.model.pca.principal_components`."""
     size = np.asarray(image_size).reshape(-1)
     if size.size != 2 or not np.issubdtype(size.dtype, np.integer) or (size < 1).any():
         raise StatfitError(f"{source}: image_size must be two positive integers [H, W], got {size.tolist()}")
@@ -152,7 +152,7 @@ def build_texture_model(images: Iterable[tuple[str, np.ndarray]], size: tuple[in
                         jitter: int = 0, seed: int = 0, randomized: bool | None = None) -> TextureModel:
     """PCA texture model from ``(name, image (H, W, C))`` pairs: each resized to ``size`` (H, W),
     all promoted to the largest channel count, ``jitter`` colour-jittered copies added per image
-    (:func:`jitter_colours`), then :func:`statfit.pca.principal_components` with ``k`` modes (fewer,
+    (:func:`jitter_colours`), then :func:`statfit.model.pca.principal_components` with ``k`` modes (fewer,
     with a warning, when there are not enough samples)."""
     resized = [(name, resize_image(image, size)) for name, image in images]
     if len(resized) < 2:

@@ -1,0 +1,110 @@
+"""Gradient-based rigid or similarity pose of a fixed shape against any differentiable objective."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import torch
+
+from statfit.geometry.align import Similarity
+from statfit.structures.camera import Camera
+from statfit.structures.frame import Frame
+
+Loss = Callable[[torch.Tensor], dict[str, torch.Tensor]]
+
+
+@dataclass(frozen=True)
+class PoseFit:
+    """The best pose found, its (unposed) shape (N, 3) and the objective's value there."""
+
+    pose: Similarity
+    shape: torch.Tensor
+    loss: float
+
+
+# Weight of the Gaussian prior on the shape coefficients fitted with the pose: weak, so the pose
+# does not absorb differences of shape (docs/method.md, the inverse-rendering alignment).
+SHAPE_PRIOR = 1e-3
+
+def _skew(omega: torch.Tensor) -> torch.Tensor:
+    zero = omega.new_zeros(())
+    x, y, z = omega.unbind()
+    return torch.stack([torch.stack([zero, -z, y]), torch.stack([z, zero, -x]), torch.stack([-y, x, zero])])
+
+
+def fit_pose(vertices: torch.Tensor, loss: Loss, *, with_scale: bool = False, iterations: int = 200,
+             lr: float = 0.01, start: Similarity | None = None, fixed_axis: torch.Tensor | None = None,
+             shape_basis: torch.Tensor | None = None, shape_prior: float = SHAPE_PRIOR, shape_lr: float | None = None,
+             move: bool = True) -> PoseFit:
+    """The pose y = s·R·x + t of ``vertices`` (N, 3) that minimises ``sum(loss(y).values())``.
+
+    Adam on a rotation vector (exponential map), a translation and, ``with_scale``, log s; the
+    rotation and scale act about the vertices' centroid. ``lr`` is in the vertices' units (and
+    radians). ``fixed_axis`` (3,) unit: the translation keeps its component along it (e.g. a
+    camera's viewing axis, along which one view barely constrains it). Starts from ``start``
+    (default: the identity). ``shape_basis`` (K, N, 3): the shape varies jointly as
+    ``vertices + Σ c_k basis_k`` with a penalty ``shape_prior·‖c‖²``, so that the pose need not
+    explain differences of shape, each coefficient at Adam's step ``shape_lr`` (default ``lr``);
+    ``move=False`` keeps the pose at ``start`` and fits the shape only. Returns the best pose
+    seen, with its shape and objective value.
+    """
+    dtype, device = vertices.dtype, vertices.device
+    centre = vertices.detach().mean(dim=0)
+    start = start or Similarity()
+    base = torch.as_tensor(start.rotation, dtype=dtype, device=device)
+    identity = torch.eye(3, dtype=dtype, device=device)
+    shift = torch.as_tensor(start.translation, dtype=dtype, device=device) + (start.scale * base - identity) @ centre
+    omega = torch.zeros(3, dtype=dtype, device=device, requires_grad=True)
+    free = identity
+    if fixed_axis is not None:
+        axis = fixed_axis.to(dtype=dtype, device=device)
+        free = free - torch.outer(axis, axis)
+    step = torch.zeros(3, dtype=dtype, device=device, requires_grad=True)
+    log_scale = torch.tensor(float(np.log(start.scale)), dtype=dtype, device=device, requires_grad=with_scale)
+    coefficients = torch.zeros(0 if shape_basis is None else len(shape_basis), dtype=dtype, device=device,
+                               requires_grad=shape_basis is not None)
+    groups = [{"params": [omega, step] + ([log_scale] if with_scale else [])}] if move else []
+    if shape_basis is not None:
+        groups.append({"params": [coefficients], "lr": lr if shape_lr is None else shape_lr})
+    optimizer = torch.optim.Adam(groups, lr=lr)
+    centred = vertices.detach() - centre
+
+    def shape() -> torch.Tensor:
+        if shape_basis is None:
+            return centred
+        return centred + torch.tensordot(coefficients, shape_basis, dims=1)
+
+    def posed() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        rotation = torch.linalg.matrix_exp(_skew(omega)) @ base
+        translation = shift + free @ step
+        return log_scale.exp() * shape() @ rotation.T + centre + translation, rotation, translation
+
+    best, best_value = None, float("inf")
+    for _ in range(iterations):
+        optimizer.zero_grad(set_to_none=True)
+        y, rotation, translation = posed()
+        value = sum(loss(y).values()) + shape_prior * coefficients.square().sum()
+        if float(value.detach()) < best_value:
+            best_value = float(value.detach())
+            best = (float(log_scale.detach().exp()), rotation.detach(), translation.detach(),
+                    (shape() + centre).detach())
+        value.backward()
+        optimizer.step()
+    scale, rotation, translation, best_shape = best
+    rotation = rotation.double().cpu().numpy()
+    centre64 = centre.double().cpu().numpy()
+    # y = s R (x − c) + c + t  ⇒  t' = c + t − s R c
+    pose = Similarity(scale, rotation, centre64 + translation.double().cpu().numpy() - scale * rotation @ centre64)
+    return PoseFit(pose, best_shape, best_value)
+
+
+def camera_in_frame(camera: Camera, frame: Frame, pose: Similarity = Similarity()) -> Camera:
+    """The camera that sees unit-frame points x as ``camera`` sees world points
+    ``frame.from_unit(pose.apply(x))`` (same image; camera coordinates divided by the scales)."""
+    R, t = camera.rotation.numpy(), camera.world_to_camera[:3, 3].numpy()
+    scale = frame.scale * pose.scale
+    matrix = np.eye(4)
+    matrix[:3, :3] = R @ pose.rotation
+    matrix[:3, 3] = (R @ (frame.scale * pose.translation + frame.center) + t) / scale
+    return Camera(camera.width, camera.height, camera.K, matrix)

@@ -1,0 +1,129 @@
+"""Settings of one optimisation stage, validated when made, and the model as the fit sees it."""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+import torch
+
+from statfit.errors import StatfitError
+from statfit.core.filters import beta_with_power
+from statfit.structures.frame import Frame
+from statfit.model.statmodel import StatModel
+from statfit.core.solvers import SOLVERS
+
+OPTIMIZERS = ("adam", "gauss-newton")
+LAPLACIANS = ("uniform", "cotangent")
+MAX_ITERATIONS = 10_000_000
+MAX_LEVELS = 20
+# Upper bounds: far beyond any useful value (β 1000, λ 300, γ 1, σ 0.003 are the largest tuned ones),
+# below what breaks the arithmetic (λ 10³⁰ makes I + λL numerically indefinite; β^p overflows).
+LIMITS = {"beta": 1e9, "lam": 1e9, "mode_gain": 100.0, "noise": 1e3, "power": 100.0, "prior": 1e9}
+
+
+@dataclass(frozen=True)
+class Settings:
+    """One optimisation stage of ``method`` (a name in :data:`statfit.core.methods.METHODS`).
+
+    ``beta``: the filter's β (statistical, hybrid) or the regulariser's weight (regularized);
+    ``power`` p turns β into β' = (1+β)^p − 1; ``lam``: λ of the Laplacian (``laplacian``: its kind,
+    ``solver``: how (I + λL) is factorised); ``mode_gain`` γ sets the filter's gain on mode j to
+    (std_j / std_1)^γ (0: the paper's filter, gain 1 on every mode). ``optimizer`` is "adam"
+    (Adam, or UniformAdam for filtered methods; ``lr``, ``adam_betas``) or "gauss-newton" (pca on a scan:
+    the closed-form coefficient solve, ``iterations`` an upper bound, ``noise`` σ the residual noise
+    that weighs the Gaussian prior, in fit-frame units, reached through ``levels`` continuation
+    levels). ``prior``: with Adam on pca's coefficients c (in standard deviations), the weight w of
+    a Gaussian prior term w · mean(c²) (0: none). ``landmarks`` False: the stage does not fit a
+    landmark term (the landmarks, if given, still place the start and the other stages).
+    Out-of-range values raise StatfitError naming the setting.
+    """
+
+    method: str
+    iterations: int
+    lr: float
+    beta: float = 30.0
+    power: float = 1.0
+    lam: float = 19.0
+    laplacian: str = "uniform"
+    solver: str = "cholespy"
+    mode_gain: float = 0.0
+    adam_betas: tuple[float, float] = (0.9, 0.999)
+    optimizer: str = "adam"
+    noise: float = 0.003
+    levels: int = 5
+    prior: float = 0.0
+    landmarks: bool = True
+
+    def __post_init__(self) -> None:
+        check_int("iterations", self.iterations, 1, MAX_ITERATIONS)
+        check_int("levels", self.levels, 1, MAX_LEVELS)
+        if self.optimizer not in OPTIMIZERS:
+            raise StatfitError(f"unknown optimizer {self.optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
+        if self.optimizer == "adam":
+            _check_number("lr (the step size)", self.lr, positive=True)
+        elif self.method != "pca":
+            raise StatfitError(f"the Gauss–Newton optimizer fits the model's coefficients: method 'pca', not "
+                               f"{self.method!r}")
+        for name, high in LIMITS.items():
+            _check_number(name, getattr(self, name), high=high, positive=name == "power")
+        try:
+            beta_with_power(self.beta, self.power)  # the filters' β'
+        except OverflowError:
+            raise StatfitError(f"(1 + beta)^power overflows: beta {self.beta}, power {self.power}") from None
+        if self.prior and (self.method != "pca" or self.optimizer != "adam"):
+            hint = " (its prior is noise)" if self.optimizer == "gauss-newton" else ""
+            raise StatfitError(f"prior weighs pca's coefficients under Adam, not {self.method!r} with "
+                               f"{self.optimizer!r}{hint}")
+        if self.laplacian not in LAPLACIANS:
+            raise StatfitError(f"unknown Laplacian {self.laplacian!r}; choose one of {', '.join(LAPLACIANS)}")
+        if self.solver not in SOLVERS:
+            raise StatfitError(f"unknown solver {self.solver!r}; choose one of {', '.join(SOLVERS)}")
+        if len(self.adam_betas) != 2 or not all(0 <= b < 1 for b in self.adam_betas):
+            raise StatfitError(f"adam_betas must be two numbers in [0, 1), got {self.adam_betas}")
+
+    def describe(self) -> dict[str, Any]:
+        """The settings as a plain dict (for logs)."""
+        return asdict(self)
+
+
+def _check_number(name: str, value: float, positive: bool = False, high: float = math.inf) -> None:
+    """A finite number, ≥ 0 (or > 0 with ``positive``), at most ``high``."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise StatfitError(f"{name} must be a finite number, got {value!r}")
+    if value < 0 or (positive and value == 0):
+        raise StatfitError(f"{name} must be {'positive' if positive else 'at least 0'}, got {value!r}")
+    if value > high:
+        raise StatfitError(f"{name} must be at most {high:g}, got {value!r}")
+
+
+def check_int(name: str, value: int, low: int, high: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not low <= value <= high:
+        raise StatfitError(f"{name} must be a whole number from {low} to {high:,}, got {value!r}")
+
+
+@dataclass(frozen=True)
+class FitSpace:
+    """The model in the fit frame, as tensors: mean (N, c), basis_t = Uᵀ (K, cN), std (K,); the
+    Laplacian comes from the mesh ``faces``, or is given ready (``laplacian_matrix``, e.g. an image grid's)."""
+
+    mean: torch.Tensor
+    basis_t: torch.Tensor
+    std: torch.Tensor
+    faces: np.ndarray | None
+    laplacian_matrix: sp.spmatrix | None = None
+
+    @classmethod
+    def of(cls, model: StatModel, frame: Frame | None = None, device: str | torch.device = "cpu",
+           dtype: torch.dtype = torch.float32) -> "FitSpace":
+        """``model``'s mean, basis and std-devs in ``frame`` (default: the template's unit frame,
+        :class:`statfit.structures.frame.Frame`), as tensors on ``device``."""
+        frame = frame or Frame.of(model.template)
+
+        def as_tensor(array: np.ndarray) -> torch.Tensor:
+            return torch.as_tensor(np.ascontiguousarray(array), dtype=dtype, device=device)
+
+        return cls(as_tensor(frame.to_unit(model.template)), as_tensor(model.basis.T),
+                   as_tensor(model.std / frame.scale), model.faces)

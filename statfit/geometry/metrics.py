@@ -1,0 +1,64 @@
+"""Errors of a fitted mesh against a ground-truth mesh of the same topology."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from statfit.geometry.closest import ClosestPointQuery
+from statfit.structures.frame import Frame
+from statfit.renderer import Camera, rasterize
+
+
+def observed_vertices(vertices: np.ndarray, points: np.ndarray, radius: float | None = None) -> np.ndarray:
+    """Boolean mask (N,): vertices within ``radius`` of an observed point; by default three times
+    the points' median nearest-neighbour spacing."""
+    tree = cKDTree(points)
+    if radius is None:
+        spacing, _ = tree.query(points, k=2)
+        radius = 3.0 * float(np.median(spacing[:, 1]))
+    dist, _ = tree.query(vertices, k=1)
+    return dist <= radius
+
+
+def visible_vertices(vertices: np.ndarray, faces: np.ndarray, camera: Camera, mask: np.ndarray | None = None
+                     ) -> np.ndarray:
+    """Boolean mask (N,): vertices of the triangles that cover a pixel of ``camera``'s image (and,
+    with ``mask`` (H, W), a pixel on the mask): the part of the mesh a normal map observes."""
+    fragments = rasterize(torch.as_tensor(vertices, dtype=torch.float64), torch.as_tensor(faces, dtype=torch.long),
+                          camera)
+    seen = fragments.face if mask is None else fragments.face[torch.as_tensor(mask).reshape(-1)[fragments.pixel]]
+    visible = np.zeros(len(vertices), dtype=bool)
+    visible[faces[np.unique(seen.numpy())].reshape(-1)] = True
+    return visible
+
+
+def surface_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Distance of each of ``points`` (M, 3) to the surface (``vertices``, ``faces``), (M,)."""
+    query = ClosestPointQuery(faces, len(vertices), k=12)
+    hit = query(torch.as_tensor(vertices, dtype=torch.float64), torch.as_tensor(points, dtype=torch.float64))
+    return hit.distance.numpy()
+
+
+def _summary(values: np.ndarray, scale: float) -> dict[str, float]:
+    if values.size == 0:
+        return {"count": 0, "mean": float("nan"), "median": float("nan"), "max": float("nan"), "mean_rel": float("nan")}
+    return {"count": int(values.size), "mean": float(values.mean()), "median": float(np.median(values)),
+            "max": float(values.max()), "mean_rel": float(values.mean() / scale)}
+
+
+def evaluate(fit: np.ndarray, gt: np.ndarray, faces: np.ndarray, observed: np.ndarray | None = None,
+             region: np.ndarray | None = None) -> dict:
+    """Per-vertex errors ‖fit − gt‖ over all / observed / unobserved vertices, plus, on observed
+    vertices, the distance of the ground truth to the fitted *surface*. ``mean_rel`` divides by
+    the ground truth's RMS radius (unit-free). ``region`` (N,) bool restricts every summary to
+    those vertices."""
+    scale = Frame.of(gt).scale
+    err = np.linalg.norm(fit - gt, axis=1)
+    inside = np.ones(len(gt), dtype=bool) if region is None else region
+    report = {"scale": scale, "all": _summary(err[inside], scale)}
+    if observed is not None:
+        report["observed"] = _summary(err[observed & inside], scale)
+        report["unobserved"] = _summary(err[~observed & inside], scale)
+        report["observed_surface"] = _summary(surface_distance(gt[observed & inside], fit, faces), scale)
+    return report

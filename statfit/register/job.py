@@ -1,0 +1,219 @@
+"""Non-rigid registration of a model's template to a (partial) scan: the library entry point."""
+from __future__ import annotations
+
+import time
+import warnings
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from statfit.geometry.align import Similarity, icp, initial_guess, umeyama
+from statfit.geometry.closest import ClosestPointQuery
+from statfit.core.device import resolve_device
+from statfit.errors import StatfitError, StatfitWarning
+from statfit.core.fit import StageTimer
+from statfit.structures.frame import UNIT_MISMATCH_FACTOR, Frame
+from statfit.register.pose import CLUTTER_MATCHED, DISTINCT_DEGREES, estimate_pose, refine_pose
+from statfit.register.hair import hair_points
+from statfit.core.methods import landmark_weight as method_landmark_weight, resolve
+from statfit.core.settings import FitSpace, Settings
+from statfit.model.statmodel import StatModel, face_triangles, region_triangles, scalp_triangles
+from statfit.objectives.landmarks import LandmarkObjective, WithLandmarks
+from statfit.objectives.scan import ScanObjective
+from statfit.structures.scan import Scan
+from statfit.core.stages import Fit, run_stages
+from statfit.core.threads import choose_threads, intra_op_threads
+
+ALIGNMENTS = ("auto", "none", "rigid", "similarity")
+# No scan in any length unit (metres to micrometres) has coordinates beyond this.
+IMPLAUSIBLE_COORDINATE = 1e9
+# Median scan-to-template distance (in model RMS radii) above which the scan is "far" from the model.
+FAR_DISTANCE = 0.25
+ROBUST_ALIGNMENT_ROUNDS = 10
+
+
+def check_scan(points: np.ndarray, source: str = "scan") -> np.ndarray:
+    """Validate an (M, 3) point array: enough points, all finite."""
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise StatfitError(f"{source}: expected points of shape (M, 3), got {points.shape}")
+    if len(points) == 0:
+        raise StatfitError(f"{source} has no points")
+    if not np.isfinite(points).all():
+        raise StatfitError(f"{source} has NaN or infinite coordinates ({int((~np.isfinite(points)).any(axis=1).sum())} points)")
+    if len(points) < 10:
+        raise StatfitError(f"{source} has only {len(points)} points; need at least 10")
+    largest = float(np.abs(points).max())
+    if largest > IMPLAUSIBLE_COORDINATE:
+        raise StatfitError(f"{source} has coordinates as large as {largest:.3g}: not a scan in any length unit "
+                           "(a damaged file?)")
+    return points
+
+
+def present_landmarks(model: StatModel, landmarks: np.ndarray) -> np.ndarray:
+    """(L,) bool: the scan's landmarks given (not NaN), after checking the count against the model's."""
+    if model.landmarks is None:
+        raise StatfitError(f"the model {model.source} has no landmarks, so --landmarks cannot be used")
+    landmarks = np.asarray(landmarks, dtype=np.float64)
+    if landmarks.shape != (model.landmarks.size, 3):
+        raise StatfitError(f"expected {model.landmarks.size} landmarks (one x y z row per model landmark, NaN "
+                           f"for a missing one), got an array of shape {landmarks.shape}")
+    present = np.isfinite(landmarks).all(axis=1)
+    source = model.template[model.landmarks[present]]
+    if present.sum() < 3 or np.linalg.matrix_rank(source - source.mean(axis=0), tol=1e-9 * np.ptp(source)) < 2:
+        raise StatfitError(f"--landmarks needs at least 3 present, non-collinear landmarks; got {int(present.sum())}")
+    return present
+
+
+def landmark_alignment(model: StatModel, landmarks: np.ndarray) -> Similarity:
+    """The similarity (scale, rotation, translation) that best maps the model's landmark vertices
+    onto the scan's ``landmarks`` (L, 3), in the model's landmark order; NaN rows are missing.
+    Robust to a few misplaced landmarks: iteratively reweighted (Geman–McClure, scale from the
+    median residual), so a landmark far from where the others put it stops counting."""
+    landmarks = np.asarray(landmarks, dtype=np.float64)
+    present = present_landmarks(model, landmarks)
+    source, target = model.template[model.landmarks[present]], landmarks[present]
+    transform = umeyama(source, target, with_scale=True)
+    floor = 1e-3 * float(np.linalg.norm(np.ptp(target, axis=0)))
+    for _ in range(ROBUST_ALIGNMENT_ROUNDS):
+        residual2 = np.square(transform.apply(source) - target).sum(axis=1)
+        s2 = max(1.4826 * float(np.sqrt(np.median(residual2))), floor) ** 2
+        transform = umeyama(source, target, with_scale=True, weights=(s2 / (s2 + residual2)) ** 2)
+    return transform
+
+
+def prealign(model: StatModel, scan: Scan, align: str, landmarks: np.ndarray | None = None, seed: int = 0
+             ) -> tuple[Similarity, dict | None]:
+    """The model→scan transform for ``align`` in auto|none|rigid|similarity, and for auto the
+    pose search's report (:mod:`statfit.register.pose`); checks units first. With ``landmarks``
+    (L, 3), the landmark similarity is the start: with align auto polished on the scan
+    (:func:`statfit.register.pose.refine_pose`, whose report is returned), with none the result."""
+    if align not in ALIGNMENTS:
+        raise StatfitError(f"unknown alignment {align!r}; choose one of {', '.join(ALIGNMENTS)}")
+    points = scan.points
+    if landmarks is not None:
+        start = landmark_alignment(model, landmarks)
+        if align == "auto":
+            estimate = refine_pose(model, scan, start, seed)
+            return estimate.transform, {**estimate.summary(), "from_landmarks": True}
+        return (start if align == "none" else icp(model.template, model.faces, points,
+                                                  align == "similarity", start=start)), None
+    if align == "auto":
+        estimate = estimate_pose(model, scan, seed)
+        return estimate.transform, estimate.summary()
+    ratio = np.linalg.norm(np.ptp(points, axis=0)) / np.linalg.norm(np.ptp(model.template, axis=0))
+    if align != "similarity" and not 1 / UNIT_MISMATCH_FACTOR < ratio < UNIT_MISMATCH_FACTOR:
+        raise StatfitError(f"the scan is {ratio:.3g} times the model's size: are they in different units? "
+                           "Rescale one, or use --align auto")
+    if align == "none":
+        return Similarity(), None
+    with_scale = align == "similarity"
+    start = initial_guess(model.template, points, with_scale)
+    if not with_scale and np.linalg.norm(start.translation) < Frame.of(model.template).scale:
+        start = Similarity()
+    return icp(model.template, model.faces, points, with_scale, start=start), None
+
+
+def register(model: StatModel, points: np.ndarray | Scan, method: str = "default", *, preset: str = "tuned",
+             align: str = "auto", device: str | None = None, dtype: torch.dtype = torch.float32,
+             refresh_every: int = 10, trim: float = 0.05, seed: int = 0,
+             on_record: Callable[[int, dict[str, float]], None] | None = None,
+             timer: StageTimer | None = None, stages: tuple[Settings, ...] | None = None,
+             region: str | None = None, landmarks: np.ndarray | None = None,
+             on_snapshot: Callable[[int, np.ndarray], None] | None = None, threads: int | None = None,
+             landmark_weight: float | None = None, clutter: bool | None = None, **overrides: Any) -> Fit:
+    """Fit ``model`` to the scan ``points`` (M, 3), or a :class:`statfit.structures.scan.Scan` (e.g. drawn
+    from a mesh scan by area), with ``method``.
+
+    ``align``: ``auto`` finds the scan's pose, scale and power-of-ten units without landmarks and
+    leaves a scan that already lies on the model where it is (:mod:`statfit.register.pose`; its
+    report is the result's ``pose``); ``none`` takes the scan as lying in the model's frame;
+    ``rigid``/``similarity``: ICP from the centroids.
+
+    ``region`` names a stored vertex subset: only scan points whose closest surface point lies on
+    the region's triangles enter the data term, while the filter and prior still move every vertex.
+    ``landmarks`` (L, 3), the scan's points for the model's landmarks (NaN = missing), pre-align the
+    scan by a similarity first (refined by ICP when ``align`` is rigid or similarity), then stay a
+    fit term of ``landmark_weight`` (0: the start only; None: the method's,
+    :func:`statfit.core.methods.landmark_weight`; :mod:`statfit.objectives.landmarks`).
+    ``clutter`` turns on the data term's rules for points off the template (normals, robust
+    distance; :mod:`statfit.objectives.scan`) and, without a ``region``, leaves out the points a fit
+    of the model's face alone finds to be hair and those nearest its scalp (:mod:`statfit.register.hair`:
+    hair passes every rule), or keeps the data term to the face (:func:`face_triangles`) when most
+    of the scan is out there;
+    ``None``: on when the automatic alignment found more than 1 − CLUTTER_MATCHED of the points
+    unexplained by its fit with every mode.
+    ``on_snapshot(iteration, vertices)`` receives the current vertices (N, 3), in the scan's frame,
+    every 10 iterations (e.g. to trace the error against a ground truth). ``threads``: torch
+    intra-op threads for the fit (default: chosen from the model's size, :mod:`statfit.core.threads`).
+
+    ``overrides`` (iterations, lr, beta, power, lam, laplacian, solver, mode_gain) replace the
+    method's settings; ``stages`` replaces the method altogether by an explicit pipeline. Warns (StatfitWarning) when the scan is far from the model with align='none'.
+    """
+    scan = points if isinstance(points, Scan) else Scan.from_points(check_scan(points))
+    points = check_scan(scan.points)
+    if not 0 <= trim < 1:
+        raise StatfitError(f"trim must lie in [0, 1), got {trim}")
+    if refresh_every < 1:
+        raise StatfitError(f"refresh_every must be at least 1, got {refresh_every}")
+    if landmark_weight is None:
+        landmark_weight = method_landmark_weight(method)
+    if not (np.isfinite(landmark_weight) and 0 <= landmark_weight <= 1e6):
+        raise StatfitError(f"landmark_weight must be a finite number in [0, 1e6], got {landmark_weight}")
+    stages = stages or resolve(method, preset, **overrides)
+    torch_device = resolve_device(device)
+    threads = choose_threads(model.basis.size, threads)
+    with intra_op_threads(threads):
+        torch.manual_seed(seed)
+        started = time.perf_counter()
+        region_faces = None if region is None else torch.as_tensor(region_triangles(model, region),
+                                                                   device=torch_device)
+        transform, pose = prealign(model, scan, align, landmarks, seed)
+        if pose is not None and pose["ambiguous"]:
+            warnings.warn(f"the scan's pose is ambiguous: the best scores {pose['score']:.3f}, another "
+                          f"{DISTINCT_DEGREES:.0f}° or more away {pose['runner_up']:.3f} (0 best, 1 worst); check the "
+                          "fit, or give --landmarks", StatfitWarning, stacklevel=2)
+        frame = Frame.of(model.template)
+        space = FitSpace.of(model, frame, torch_device, dtype)
+        fit_points = torch.as_tensor(frame.to_unit(transform.inverse_apply(points)), dtype=dtype, device=torch_device)
+        fit_normals = torch.as_tensor(scan.normals @ transform.rotation, dtype=dtype, device=torch_device)
+        query = ClosestPointQuery(model.faces, model.num_vertices, k=2, device=torch_device)
+        if clutter is None:   # the pose search found points no shape of the model explains
+            clutter = pose is not None and pose["matched"] < CLUTTER_MATCHED
+        hair_share = None
+        if clutter and region is None and (face := face_triangles(model)) is not None:
+            face = torch.as_tensor(face, device=torch_device)
+            scalp = torch.as_tensor(scalp_triangles(model), device=torch_device)
+            hair = hair_points(space, query, fit_points, fit_normals, face, trim, scalp)
+            if hair is None:                    # no head under that much: fit the face alone
+                region_faces = face
+            else:                               # fit everything but the hair
+                hair_share = float(hair.double().mean())
+                fit_points, fit_normals = fit_points[~hair], fit_normals[~hair]
+        if pose is not None:
+            pose = {**pose, "clutter_rules": clutter, "face_only": clutter and region is None
+                    and region_faces is not None, "hair_share": hair_share}
+        objective = ScanObjective(fit_points, query, refresh_every=refresh_every, trim=trim, region_faces=region_faces,
+                                  normals=fit_normals, clutter=clutter)
+        median = float(objective.refresh(space.mean).distance.median())
+        if objective.kept == 0:
+            raise StatfitError(f"no scan point lies closest to the region {region!r}: is the scan of another part?")
+        if align == "none" and landmarks is None and median > FAR_DISTANCE:
+            warnings.warn(f"the scan is far from the model (median distance {median * frame.scale:.3g}, "
+                          f"{median:.2f} model radii); consider --align rigid", StatfitWarning, stacklevel=2)
+        if landmarks is not None and landmark_weight > 0:
+            present = present_landmarks(model, landmarks)
+            targets = frame.to_unit(transform.inverse_apply(np.asarray(landmarks, dtype=np.float64)[present]))
+            objective = WithLandmarks(objective, LandmarkObjective(
+                torch.as_tensor(model.landmarks[present], device=torch_device),
+                torch.as_tensor(targets, dtype=dtype, device=torch_device), landmark_weight))
+        timer = timer or StageTimer(sync=torch_device.type == "cuda")
+        def to_scan_frame(x: torch.Tensor) -> np.ndarray:
+            return transform.apply(frame.from_unit(x.detach().cpu().double().numpy()))
+
+        snapshot = None if on_snapshot is None else lambda it, x: on_snapshot(it, to_scan_frame(x))
+        result = run_stages(stages, space, objective, space.mean.clone(), on_record=on_record,
+                            on_snapshot=snapshot, timer=timer)
+        return Fit(to_scan_frame(result.vertices), transform, stages, result.loss,
+                            time.perf_counter() - started, dict(timer.seconds), result.iterations, pose, threads)

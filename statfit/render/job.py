@@ -1,0 +1,263 @@
+"""Inverse rendering: fit a model's template to one normal map. The library entry point of
+``statfit render``.
+
+The fit runs in the model's unit frame (:class:`statfit.structures.frame.Frame`); the camera is moved into
+that frame, and a pose found by the initial alignment is folded into the camera, so the filters
+act on the model in its own orientation. Target normals are compared in camera space.
+
+Alignment (rigid / similarity), on the map reduced to about 256 px: Adam on the model's
+coefficients (weak prior), once jointly with a pose and once alone; the pose is kept where it
+lowers the objective by 10%, or where the silhouettes overlapped so poorly that the search had to
+start from a rough move matching their centroids. The translation along the viewing axis stays
+fixed: from one view it trades off against the shape's size (left free, it drifted by most of a
+head radius on test cases); use similarity to estimate a scale. docs/method.md has the numbers.
+"""
+from __future__ import annotations
+
+import time
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from statfit.geometry.align import Similarity, compose
+from statfit.errors import StatfitError
+from statfit.core.fit import StageTimer
+from statfit.structures.frame import UNIT_MISMATCH_FACTOR, Frame
+from statfit.structures.normal_map import NormalMap
+from statfit.core.methods import resolve
+from statfit.core.settings import FitSpace, Settings
+from statfit.model.statmodel import StatModel, region_triangles
+from statfit.objectives.normals import SILHOUETTE_WEIGHT, NormalMapObjective
+from statfit.core.pose import camera_in_frame, fit_pose
+from statfit.core.device import resolve_device
+from statfit.renderer import Camera, MeshAdjacency, rasterize
+from statfit.core.stages import Fit, run_stages
+from statfit.core.threads import choose_threads, intra_op_threads
+
+ALIGNMENTS = ("none", "rigid", "similarity")
+NORMAL_SPACES = ("world", "camera")
+NORMAL_CONVENTIONS = ("opencv", "opengl")
+POSE_ITERATIONS = 200
+POSE_LR = 0.01
+# The rigid alignment's step on the model's coefficients (standard deviations), 5x the pose's: at
+# the pose's step they move at most ~2 in its 200 steps, short of what bodies far from the mean need
+# (a 1.21 m body: -1.8 on the size mode alone). On the body study every method ends closer from this
+# start (the old default 16.2 -> 12.2 mm); faces are equal (docs/studies.md §13, session 9).
+SHAPE_LR = 0.05
+GOOD_OVERLAP = 0.7
+MIN_COVERED_PIXELS = 16
+POSE_GAIN = 0.1
+# Floats the rasteriser and objective touch per pixel and iteration (for the thread choice).
+RENDER_FLOATS_PER_PIXEL = 16
+ALIGN_SIZE = 256  # the alignment runs on the map reduced by an integer factor to about this size
+
+
+def render_stages(method: str = "default", preset: str = "tuned", region: str | None = None,
+                  **overrides: Any) -> tuple[Settings, ...]:
+    """The stages of ``method`` for inverse rendering. With a ``region``, ``default`` is the
+    3,000-iteration hybrid filter (``--method hybrid``): the fast default schedule drifts when the
+    data term sees only part of the map (a face under a 2 cm cap: face error 18.3 mm after 450
+    iterations vs 6.9 mm for the hybrid; docs/studies.md §11)."""
+    if region is not None and method == "default":
+        method = "hybrid"
+    return resolve(method, preset, job="render", **overrides)
+
+
+def camera_space_normals(normal_map: NormalMap, camera: Camera, space: str = "world",
+                         convention: str = "opencv") -> np.ndarray:
+    """The map's normals (H, W, 3) in camera space with OpenCV axes (x right, y down, z forward).
+
+    space 'world': normals in the camera's world frame; 'camera' with convention 'opencv', or
+    'opengl' (x right, y up, z towards the viewer)."""
+    if space not in NORMAL_SPACES:
+        raise StatfitError(f"unknown normal space {space!r}; choose world or camera")
+    if convention not in NORMAL_CONVENTIONS:
+        raise StatfitError(f"unknown normal convention {convention!r}; choose opencv or opengl")
+    normals = normal_map.normals.astype(np.float64)
+    if space == "world":
+        normals = normals @ camera.rotation.numpy().T
+    elif convention == "opengl":
+        normals = normals * np.array([1.0, -1.0, -1.0])
+    return np.where(normal_map.mask[..., None], normals, 0.0)
+
+
+def check_framing(template: np.ndarray, camera: Camera, mask: np.ndarray, align: str) -> None:
+    """Refuse a model that lies behind the camera, or whose image is far larger or smaller than
+    the target's silhouette (different units?) unless the alignment estimates a scale."""
+    pixels, depth = camera.project(torch.as_tensor(template, dtype=torch.float64))
+    if float(depth.median()) <= 0:
+        raise StatfitError("the model lies behind the camera: are the model and the camera in the same frame "
+                           "and units?")
+    pixels = pixels[depth > 0].numpy()
+    rows, cols = np.nonzero(mask)
+    model_extent = np.linalg.norm(np.ptp(pixels, axis=0))
+    target_extent = np.linalg.norm([np.ptp(cols) + 1, np.ptp(rows) + 1])
+    ratio = model_extent / target_extent
+    if align != "similarity" and not 1 / UNIT_MISMATCH_FACTOR < ratio < UNIT_MISMATCH_FACTOR:
+        raise StatfitError(f"the model's image is {ratio:.3g} times the size of the normal map's silhouette: are the "
+                           "model and the camera in different units? Rescale one, or use --align similarity")
+
+
+def _centring_guess(template: torch.Tensor, faces: torch.Tensor, camera: Camera, mask: np.ndarray,
+                    with_scale: bool) -> Similarity | None:
+    """The starting point of the pose search: None (no move) where the template's silhouette
+    overlaps the target's well (IoU ≥ ``GOOD_OVERLAP``), else a move parallel to the image plane
+    (and, ``with_scale``, a scale about the centroid) that puts the template's silhouette
+    centroid on the target's (and matches their areas). A template that covers almost no pixel
+    (e.g. in metres before a camera in millimetres) is measured by its projected bounding box."""
+    with torch.no_grad():
+        covered = (rasterize(template, faces, camera).triangle >= 0).cpu().numpy()
+        pixels, depths = camera.project(template.detach().double())
+    rows, cols = np.nonzero(mask)
+    target_centre = np.array([cols.mean() + 0.5, rows.mean() + 0.5])
+    if covered.sum() >= MIN_COVERED_PIXELS:
+        if (covered & mask).sum() >= GOOD_OVERLAP * (covered | mask).sum():
+            return None
+        model_rows, model_cols = np.nonzero(covered)
+        model_centre = np.array([model_cols.mean() + 0.5, model_rows.mean() + 0.5])
+        area_ratio = mask.sum() / covered.sum()
+    elif with_scale and bool((depths > 0).all()):
+        low, high = pixels.min(dim=0).values.cpu().numpy(), pixels.max(dim=0).values.cpu().numpy()
+        model_centre = (low + high) / 2
+        area_ratio = (np.ptp(cols) + 1) * (np.ptp(rows) + 1) / max(float(np.prod(high - low)), 1e-300)
+        rough = _similarity_move(template, camera, model_centre, target_centre, area_ratio, float(depths.mean()))
+        moved = torch.as_tensor(rough.apply(template.detach().double().cpu().numpy()), dtype=template.dtype,
+                                device=template.device)
+        refined = _centring_guess(moved, faces, camera, mask, with_scale)  # now measured on its silhouette
+        return rough if refined is None else compose(refined, rough)
+    else:
+        raise StatfitError("the model is not in the camera's view: are the model and the camera in the same frame "
+                           "and units? (--align similarity estimates a scale)")
+    return _similarity_move(template, camera, model_centre, target_centre, area_ratio if with_scale else 1.0,
+                            float(depths.mean()))
+
+
+def _similarity_move(template: torch.Tensor, camera: Camera, model_centre: np.ndarray, target_centre: np.ndarray,
+                     area_ratio: float, depth: float) -> Similarity:
+    """Scale about the centroid by sqrt(area_ratio), then move parallel to the image plane at
+    ``depth`` so that the pixel ``model_centre`` lands on ``target_centre``."""
+    scale = float(np.sqrt(area_ratio))
+    K_inv = np.linalg.inv(camera.K.numpy())
+    shift = (K_inv @ [*target_centre, 1.0] - K_inv @ [*model_centre, 1.0]) * depth
+    shift[2] = 0.0
+    centre = template.detach().double().mean(dim=0).cpu().numpy()
+    return Similarity(scale, np.eye(3), (1 - scale) * centre + camera.rotation.numpy().T @ shift)
+
+
+def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method: str = "default", *,
+                preset: str = "tuned", normal_space: str = "world", normal_convention: str = "opencv",
+                align: str = "rigid", init: np.ndarray | None = None, device: str | None = None,
+                dtype: torch.dtype = torch.float32, silhouette_weight: float = SILHOUETTE_WEIGHT, seed: int = 0,
+                on_record: Callable[[int, dict[str, float]], None] | None = None,
+                timer: StageTimer | None = None, stages: tuple[Settings, ...] | None = None,
+                region: str | None = None, on_snapshot: Callable[[int, np.ndarray], None] | None = None,
+                threads: int | None = None, **overrides: Any) -> Fit:
+    """Fit ``model`` to ``normal_map`` seen by ``camera`` with ``method``.
+
+    ``init`` (N, 3): start from these vertices (world frame) instead of the template.
+    ``region``: a stored vertex subset; after the alignment (which uses the whole map), the normal
+    term counts only pixels showing the region's triangles and the silhouette is not used (the
+    outline belongs to the whole mesh); the filter and prior still move every vertex.
+    ``on_snapshot(iteration, vertices)`` receives the current vertices (N, 3, world frame) every 10
+    iterations of the fit (e.g. to trace the error against a ground truth). ``threads``: torch
+    intra-op threads (default: chosen from the model's and the map's sizes, :mod:`statfit.core.threads`).
+    ``overrides`` replace the method's settings (see :func:`statfit.core.methods.resolve`); ``stages``
+    replaces the method by an explicit pipeline.
+    """
+    if align not in ALIGNMENTS:
+        raise StatfitError(f"unknown alignment {align!r}; choose one of {', '.join(ALIGNMENTS)}")
+    if not (np.isfinite(silhouette_weight) and silhouette_weight >= 0):
+        raise StatfitError(f"silhouette_weight must be a finite number ≥ 0, got {silhouette_weight}")
+    stages = stages or render_stages(method, preset, region, **overrides)
+    torch_device = resolve_device(device)
+    work = model.basis.size + RENDER_FLOATS_PER_PIXEL * normal_map.mask.size
+    threads = choose_threads(work, threads)
+    with intra_op_threads(threads):
+        torch.manual_seed(seed)
+        started = time.perf_counter()
+        start_shape = model.template if init is None else _checked_init(init, model)
+        check_framing(start_shape, camera, normal_map.mask, align)
+        frame = Frame.of(model.template)
+        space = FitSpace.of(model, frame, torch_device, dtype)
+        target = torch.as_tensor(camera_space_normals(normal_map, camera, normal_space, normal_convention),
+                                 dtype=dtype, device=torch_device)
+        mask = torch.as_tensor(normal_map.mask, device=torch_device)
+        faces = torch.as_tensor(model.faces, dtype=torch.long, device=torch_device)
+        x0 = torch.as_tensor(frame.to_unit(start_shape), dtype=dtype, device=torch_device)
+
+        region_faces = None if region is None else torch.as_tensor(region_triangles(model, region),
+                                                                   device=torch_device)
+        adjacency = MeshAdjacency.from_faces(faces)
+        timer = timer or StageTimer(sync=torch_device.type == "cuda")
+        pose = Similarity()
+        if align != "none":
+            with timer("alignment"):
+                unit_camera = camera_in_frame(camera, frame)
+                guess = _centring_guess(x0, faces, unit_camera, normal_map.mask, align == "similarity")
+                coarse = NormalMapObjective(*downsampled(target, mask, unit_camera, ALIGN_SIZE), faces,
+                                            silhouette_weight, adjacency)
+                pose, x0 = _align(x0, coarse, space, guess, align == "similarity", unit_camera.rotation[2].to(dtype))
+        objective = NormalMapObjective(target, mask, camera_in_frame(camera, frame, pose), faces,
+                                       silhouette_weight if region is None else 0.0, adjacency, region_faces)
+        def to_world(x: torch.Tensor) -> np.ndarray:
+            return frame.from_unit(pose.apply(x.detach().cpu().double().numpy()))
+
+        snapshot = None if on_snapshot is None else lambda it, x: on_snapshot(it, to_world(x))
+        result = run_stages(stages, space, objective, x0, on_record=on_record, on_snapshot=snapshot, timer=timer)
+        vertices = to_world(result.vertices)
+        to_unit = Similarity(1.0 / frame.scale, np.eye(3), -frame.center / frame.scale)
+        from_unit = Similarity(frame.scale, np.eye(3), frame.center)
+        return Fit(vertices, compose(from_unit, compose(pose, to_unit)), stages, result.loss,
+                              time.perf_counter() - started, dict(timer.seconds), result.iterations, threads=threads)
+
+
+def downsampled(normals: torch.Tensor, mask: torch.Tensor, camera: Camera, size: int
+                ) -> tuple[torch.Tensor, torch.Tensor, Camera]:
+    """The map reduced by the integer factor f = min(H, W) // ``size`` (≥ 1): f×f blocks, a block
+    is foreground where at least half its pixels are, with their mean normal renormalised; the
+    camera's K scaled by 1/f (the last rows/columns that do not fill a block are dropped)."""
+    factor = max(1, min(mask.shape) // size)
+    if factor == 1:
+        return normals, mask, camera
+    height, width = mask.shape[0] // factor, mask.shape[1] // factor
+    blocks = lambda image: image[: height * factor, : width * factor].reshape(  # noqa: E731
+        height, factor, width, factor, -1).sum(dim=(1, 3))
+    covered = blocks(mask[..., None].to(normals.dtype))[..., 0]
+    summed = blocks(normals * mask[..., None])
+    coarse_mask = covered >= factor * factor / 2
+    length = summed.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(normals.dtype).tiny)
+    coarse = torch.where(coarse_mask[..., None], summed / length, 0.0)
+    K = camera.K.clone()
+    K[:2] /= factor
+    return coarse, coarse_mask, Camera(width, height, K, camera.world_to_camera)
+
+
+def _align(start: torch.Tensor, objective: NormalMapObjective, space: FitSpace, guess: Similarity | None,
+           with_scale: bool, view_axis: torch.Tensor) -> tuple[Similarity, torch.Tensor]:
+    """The model → unit-frame pose and the start shape for the fit.
+
+    The model's coefficients are fitted jointly with the pose (so that the pose does not absorb
+    differences of shape; under a rigid pose at the step SHAPE_LR), and, as a reference, alone
+    with the pose held at ``guess``; the pose is kept only where it lowers the objective by
+    ``POSE_GAIN`` or more (from one view, small rotations trade off against expressions and
+    identity), or where the search had to start from a rough ``guess`` (None: the silhouettes
+    overlapped, no move was needed)."""
+    basis = (space.basis_t * space.std[:, None]).view(len(space.std), -1, 3)
+    common = dict(iterations=POSE_ITERATIONS, lr=POSE_LR, start=guess, fixed_axis=view_axis, shape_basis=basis,
+                  shape_lr=POSE_LR if with_scale else SHAPE_LR)   # with a scale, the size mode trades against it
+    moved = fit_pose(start, objective, with_scale=with_scale, **common)
+    if guess is not None:
+        return moved.pose, moved.shape  # the silhouettes disagreed: the rough guess needs refining
+    still = fit_pose(start, objective, move=False, **common)
+    chosen = moved if moved.loss < (1.0 - POSE_GAIN) * still.loss else still
+    return chosen.pose, chosen.shape
+
+
+def _checked_init(init: np.ndarray, model: StatModel) -> np.ndarray:
+    init = np.asarray(init, dtype=np.float64)
+    if init.shape != model.template.shape:
+        raise StatfitError(f"the initial mesh has {init.shape[0]} vertices; the model has {model.num_vertices}")
+    if not np.isfinite(init).all():
+        raise StatfitError("the initial mesh has NaN or infinite coordinates")
+    return init

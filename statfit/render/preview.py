@@ -1,0 +1,73 @@
+"""Preview image of an inverse-rendering fit: target normals | fitted normals | angular error
+(with a colour bar) | the fitted mesh turned 70° | the fitted mesh from behind (what the map never saw)."""
+from __future__ import annotations
+
+import io
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402  (the backend must be chosen first)
+import numpy as np  # noqa: E402
+
+from statfit.renderer import Camera  # noqa: E402
+from statfit.renderer.images import render_target  # noqa: E402
+
+SIDE_VIEW_DEG = 70.0
+BACK_VIEW_DEG = 180.0
+
+
+def normals_to_rgb(normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Camera-space (OpenCV) unit normals (H, W, 3) → RGB in the usual look of normal maps
+    (OpenGL axes: +x red, +y up green, +z towards the viewer blue); background white."""
+    rgb = (normals * np.array([1.0, -1.0, -1.0]) + 1.0) / 2.0
+    return np.where(mask[..., None], np.clip(rgb, 0.0, 1.0), 1.0)
+
+
+def angular_error(fitted: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Angle in degrees between unit normals (H, W, 3), per pixel."""
+    cosine = np.clip((fitted * target).sum(axis=-1), -1.0, 1.0)
+    return np.degrees(np.arccos(cosine))
+
+
+def side_camera(camera: Camera, vertices: np.ndarray, degrees: float = SIDE_VIEW_DEG) -> Camera:
+    """``camera`` turned by ``degrees`` about its own vertical axis through the mesh's centroid."""
+    centre = vertices.mean(axis=0)
+    angle = np.radians(degrees)
+    turn = np.array([[np.cos(angle), 0.0, np.sin(angle)], [0.0, 1.0, 0.0], [-np.sin(angle), 0.0, np.cos(angle)]])
+    R, t = camera.rotation.numpy(), camera.world_to_camera[:3, 3].numpy()
+    centre_cam = R @ centre + t
+    pose = np.eye(4)
+    pose[:3, :3] = turn @ R
+    pose[:3, 3] = centre_cam - turn @ R @ centre
+    return Camera(camera.width, camera.height, camera.K, pose)
+
+
+def preview_png(target: np.ndarray, target_mask: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                camera: Camera) -> bytes:
+    """The preview as PNG bytes. target: camera-space (OpenCV) normals (H, W, 3) and mask (H, W)."""
+    fitted, covered = render_target(vertices, faces, camera, space="camera")
+    both = covered & target_mask
+    error = np.where(both, angular_error(fitted, target), np.nan)
+    side, side_mask = render_target(vertices, faces, side_camera(camera, vertices), space="camera")
+    back, back_mask = render_target(vertices, faces, side_camera(camera, vertices, BACK_VIEW_DEG), space="camera")
+    figure, axes = plt.subplots(1, 5, figsize=(20, 4.4), constrained_layout=True)
+    axes[0].imshow(normals_to_rgb(target, target_mask))
+    axes[0].set_title("target normals")
+    axes[1].imshow(normals_to_rgb(fitted, covered))
+    axes[1].set_title("fitted normals")
+    heat = axes[2].imshow(error, cmap="inferno", vmin=0.0, vmax=max(float(np.nanpercentile(error, 99)), 1.0)
+                          if both.any() else 1.0)
+    mean = float(np.nanmean(error)) if both.any() else float("nan")
+    axes[2].set_title(f"angular error (mean {mean:.1f}°)")
+    figure.colorbar(heat, ax=axes[2], fraction=0.046, pad=0.02, label="degrees")
+    axes[3].imshow(normals_to_rgb(side, side_mask))
+    axes[3].set_title(f"fitted mesh, view turned {SIDE_VIEW_DEG:.0f}°")
+    axes[4].imshow(normals_to_rgb(back, back_mask))
+    axes[4].set_title("fitted mesh, from behind")
+    for axis in axes:
+        axis.set_axis_off()
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png", dpi=80)
+    plt.close(figure)
+    return buffer.getvalue()
