@@ -38,11 +38,11 @@ def former_default_stages() -> tuple:
 
 
 def register_named(model, points, name: str, iterations: int | None = None, **options):
-    """``statfit.register.job.register`` with a shipped method or pipeline ``name``, or
+    """``statfit.registration.job.register`` with a shipped method or pipeline ``name``, or
     :data:`FORMER_DEFAULT` (its stages as they were; ``iterations`` then replaces each stage's)."""
     from dataclasses import replace
 
-    from statfit.register.job import register
+    from statfit.registration.job import register
 
     if name != FORMER_DEFAULT:
         return register(model, points, name, iterations=iterations, **options)

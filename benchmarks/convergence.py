@@ -41,7 +41,7 @@ def trace(job: str, case_name: str, method: str, size: int, iterations: int | No
     overrides = {"iterations": iterations} if iterations else {}
     start = time.perf_counter()
     if job == "scan":
-        from statfit.register.job import register
+        from statfit.registration.job import register
 
         register(model, case.points, method, device=device, on_snapshot=on_snapshot, **overrides)
     else:

@@ -29,7 +29,7 @@ from statfit.structures.frame import Frame
 from statfit.core.methods import build
 from statfit.core.settings import FitSpace, Settings
 from statfit.objectives.scan import ScanObjective
-from statfit.register.job import register
+from statfit.registration.job import register
 
 THREADS = 2
 # (λ, lr, iterations): the paper's laplacian settings and statfit's tuned ones (statfit.core.methods).

@@ -69,8 +69,8 @@ def pose_case(seed: int) -> dict:
     import torch
 
     torch.set_num_threads(1)
-    from statfit.register.pose import estimate_pose
-    from statfit.register.job import register
+    from statfit.registration.pose.search import estimate_pose
+    from statfit.registration.job import register
     from statfit.structures.scan import Scan
     from statfit.core.threads import flush_denormals_everywhere
 
@@ -101,7 +101,7 @@ def clutter_case(seed: int, method: str) -> dict:
     import torch
 
     torch.set_num_threads(1)
-    from statfit.register.job import register
+    from statfit.registration.job import register
     from statfit.structures.scan import Scan
     from statfit.core.threads import flush_denormals_everywhere
 

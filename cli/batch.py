@@ -25,7 +25,7 @@ from statfit.batch.run import BatchReport, run_batch
 from statfit.errors import StatfitError
 from statfit.model.importers.cache import content_key, open_model
 from statfit.render.job import ALIGNMENTS, NORMAL_CONVENTIONS, NORMAL_SPACES, render_stages
-from statfit.register.job import ALIGNMENTS as SCAN_ALIGNMENTS
+from statfit.registration.job import ALIGNMENTS as SCAN_ALIGNMENTS
 from statfit.io.normalmap import read_camera
 from statfit.core.methods import resolve
 from statfit.model.statmodel import StatModel, region_vertices

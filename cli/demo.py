@@ -8,7 +8,7 @@ from rich.table import Table
 
 from statfit.core.methods import METHODS, resolve
 from statfit.geometry.metrics import evaluate, observed_vertices
-from statfit.register.job import register as fit_scan
+from statfit.registration.job import register as fit_scan
 from statfit.synth.sample import sample_target, scan_from_view
 from statfit.model.importers.cache import open_model
 from statfit_cli.common import progress_bar, seed_option, within

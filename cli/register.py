@@ -11,7 +11,7 @@ from statfit.io.mesh import check_writable, load_scan, mesh_bytes, mesh_format
 from statfit.io.landmarks import read_landmarks
 from statfit.core.device import resolve_device
 from statfit.core.methods import LANDMARK_WEIGHT, landmark_weight as method_landmark_weight, resolve
-from statfit.register.job import register as fit_scan
+from statfit.registration.job import register as fit_scan
 from statfit.model.importers.cache import open_model
 from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, IterationsOption, JsonOption, KOption,
                                 LamOption, LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption,

@@ -32,7 +32,7 @@ def measure(method: str, iterations: int | None, threads: int, preset: str) -> d
     import torch
 
     from statfit.model.statmodel import load_model
-    from statfit.register.job import register
+    from statfit.registration.job import register
     from statfit.synth.sample import load_delta, sample_target, scan_from_view
 
     torch.set_num_threads(threads)

@@ -46,7 +46,7 @@ def run_case(seed: int, scan_name: str, k: int | None = None) -> dict:
     torch.set_num_threads(1)
     import real_scans
     from scipy.spatial.transform import Rotation
-    from statfit.register.job import register
+    from statfit.registration.job import register
     from statfit.structures.scan import Scan
     from statfit.core.threads import flush_denormals_everywhere
 

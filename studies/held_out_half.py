@@ -81,7 +81,7 @@ def candidates() -> dict:
 
 def register_with(method: str, model, points: np.ndarray, **options):
     """``register`` with a shipped method or a candidate pipeline of :func:`candidates`."""
-    from statfit.register.job import register
+    from statfit.registration.job import register
 
     stages, extra = candidates().get(method, (None, {}))
     shipped = method.split(" w ")[0] if stages is None and extra else method
@@ -128,7 +128,7 @@ def fit(method: str, name: str, half: str, k: int) -> dict:
     from cases import ict_model
     from statfit.geometry.metrics import surface_distance
     from statfit.model.statmodel import with_landmarks
-    from statfit.register.job import landmark_alignment
+    from statfit.registration.job import landmark_alignment
     from statfit.core.threads import flush_denormals_everywhere
 
     flush_denormals_everywhere()

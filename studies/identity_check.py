@@ -31,7 +31,7 @@ def main() -> None:
     from cases import ict_model, normal_case, scan_case
     from statfit.render.job import reconstruct
     from statfit.model.statmodel import default_model_path, load_model
-    from statfit.register.job import register
+    from statfit.registration.job import register
     from statfit.synth.sample import sample_target, scan_from_view
     from statfit.texture.inpaint import inpaint
     from statfit.texture.model import build_texture_model

@@ -74,7 +74,7 @@ def measure(stages, k: int | None = None) -> dict:
     import numpy as np
     import torch
 
-    from statfit.register.job import register
+    from statfit.registration.job import register
 
     torch.set_num_threads(1)
     errors, seconds = {}, {}

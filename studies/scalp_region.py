@@ -49,8 +49,8 @@ def _use(variant: str) -> None:
     import importlib
 
     model_module = importlib.import_module("statfit.model.statmodel")
-    pose_module = importlib.import_module("statfit.register.pose")
-    fit_module = importlib.import_module("statfit.register.job")
+    pose_module = importlib.import_module("statfit.registration.pose.search")
+    fit_module = importlib.import_module("statfit.registration.job")
     in_pose, in_fit, above, behind = VARIANTS[variant]
     model_module.SCALP_ABOVE, model_module.SCALP_BEHIND = above, behind
     scalp = model_module.scalp_triangles
@@ -64,8 +64,8 @@ def run_case(variant: str, seed: int, clutter: float) -> dict:
     torch.set_num_threads(1)
     import real_scans
     from scipy.spatial.transform import Rotation
-    from statfit.register.pose import estimate_pose
-    from statfit.register.job import register
+    from statfit.registration.pose.search import estimate_pose
+    from statfit.registration.job import register
     from statfit.structures.scan import Scan
     from statfit.core.threads import flush_denormals_everywhere
 

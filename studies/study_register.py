@@ -39,7 +39,7 @@ from statfit.core.methods import METHODS
 from statfit.core.settings import Settings
 from statfit.geometry.metrics import evaluate, observed_vertices
 from statfit.model.statmodel import StatModel, load_model
-from statfit.register.job import register
+from statfit.registration.job import register
 from statfit.synth.sample import load_delta, sample_target, scan_from_view
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -42,7 +42,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from study_register import (  # noqa: E402
     ALL_CASES, HELD_OUT_CASES, RECOMMENDED, REGIONS, RESULTS_PATH, ROOT, TEST_CASES, Study, as_python,
     fmt, label, results_table, stage)
-from statfit.register.job import register  # noqa: E402
+from statfit.registration.job import register  # noqa: E402
 
 FOLLOWUP_PATH = ROOT / "studies" / "results" / "study_register_followup.json"
 DOC_PATH = ROOT / "docs" / "study_register_followup.md"

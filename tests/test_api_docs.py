@@ -14,5 +14,5 @@ def test_api_reference_builds(tmp_path):
     api["build"](tmp_path)
     pages = {p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*.html")}
     assert {"statfit/core/methods.html", "statfit/core/fit.html", "statfit/core/parametrize.html",
-            "statfit/register/job.html"} <= pages
+            "statfit/registration/job.html"} <= pages
     assert "add_method" in (tmp_path / "statfit" / "core" / "methods.html").read_text()

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from statfit.register.job import register
+from statfit.registration.job import register
 from statfit.synth.sample import sample_target, scan_from_view
 
 

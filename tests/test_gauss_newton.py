@@ -11,7 +11,7 @@ from statfit.structures.frame import Frame
 from statfit.core.gauss_newton import fit_coefficients
 from statfit.core.methods import resolve
 from statfit.objectives.scan import ScanObjective
-from statfit.register.job import register
+from statfit.registration.job import register
 from statfit.core.settings import FitSpace
 from statfit.synth.sample import scan_from_view
 

@@ -10,7 +10,7 @@ from statfit.geometry.align import Similarity
 from statfit.errors import StatfitError
 from statfit.io.landmarks import MAX_LANDMARK_BYTES, read_landmarks
 from statfit.objectives.landmarks import LandmarkObjective
-from statfit.register.job import landmark_alignment
+from statfit.registration.job import landmark_alignment
 from scipy.spatial.transform import Rotation
 
 
@@ -88,7 +88,7 @@ def test_the_landmark_term_holds_the_landmarks_where_the_start_alone_drifts(embe
     from conftest import run_cli
     from statfit.io.mesh import points_bytes
     from statfit.core.methods import LANDMARK_WEIGHT
-    from statfit.register.job import register
+    from statfit.registration.job import register
     from statfit.synth.sample import sample_target, scan_from_view
 
     rng = np.random.default_rng(seed)
@@ -123,7 +123,7 @@ def test_each_method_weighs_its_landmarks_with_its_own_default(embedded_model, t
     from conftest import run_cli
     from statfit.io.mesh import points_bytes
     from statfit.core.methods import LANDMARK_WEIGHT, landmark_weight
-    from statfit.register.job import register
+    from statfit.registration.job import register
     from statfit.synth.sample import sample_target, scan_from_view
 
     assert (landmark_weight("pca"), landmark_weight("default"), LANDMARK_WEIGHT) == (1.0, 10.0, 10.0)
@@ -150,7 +150,7 @@ def test_each_method_weighs_its_landmarks_with_its_own_default(embedded_model, t
 def test_landmarks_on_half_a_face_place_a_start_the_scan_then_corrects(embedded_model, seed):
     """Noisy landmarks on one half tilt their similarity by degrees and scale it by several per cent
     (an independent truth: the pose the scan was made in); the polish on the scan undoes both."""
-    from statfit.register.pose import refine_pose
+    from statfit.registration.pose.search import refine_pose
     from statfit.structures.scan import Scan
     from statfit.synth.sample import scan_from_view
 
@@ -184,7 +184,7 @@ def test_a_stage_without_landmarks_fits_the_scan_alone(embedded_model):
 
     from statfit.core.methods import resolve
 
-    register = importlib.import_module("statfit.register.job").register
+    register = importlib.import_module("statfit.registration.job").register
     rng = np.random.default_rng(5)
     from statfit.synth.sample import sample_target, scan_from_view
 

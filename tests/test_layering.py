@@ -22,7 +22,7 @@ FOLDERS = {
     "io": "io",
     "model": "model",
     "core": "core", "objectives": "core",
-    "register": "jobs", "render": "jobs", "splat": "jobs", "synth": "jobs", "texture": "jobs",
+    "registration": "jobs", "render": "jobs", "splat": "jobs", "synth": "jobs", "texture": "jobs",
     "batch": "batch",
 }
 JOBS = {name for name, kind in FOLDERS.items() if kind == "jobs"}
@@ -100,7 +100,7 @@ def test_the_library_never_imports_the_cli():
 
 
 def test_the_rules_catch_a_violation():
-    assert LAYERS.index(layer("statfit.register.job")) > LAYERS.index(layer("statfit.core.filters"))
+    assert LAYERS.index(layer("statfit.registration.job")) > LAYERS.index(layer("statfit.core.filters"))
     assert layer("statfit.io.mesh") == "io" and layer("statfit.model.importers.cache") == "model"
     assert room("statfit.render.job") != room("statfit.renderer.raster")
     assert room("statfit.render.job") in JOBS and room("statfit.renderer.raster") not in JOBS

@@ -13,7 +13,7 @@ import torch
 
 from statfit.errors import StatfitError
 from statfit.core.methods import METHODS, Method, add_method, build, filtered_method, resolve
-from statfit.register.job import register
+from statfit.registration.job import register
 from statfit.core.settings import FitSpace, Settings
 from statfit.synth.sample import sample_target, scan_from_view
 

@@ -12,12 +12,12 @@ import trimesh
 from statfit.geometry.align import Similarity
 from statfit.geometry.closest import ClosestPointQuery, open_edges
 from statfit.errors import StatfitError
-from statfit.register.pose import estimate_pose
+from statfit.registration.pose.search import estimate_pose
 from statfit.io.landmarks import read_landmarks
 from statfit.io.mesh import read_mesh
 from statfit.objectives.scan import ScanObjective
 from statfit.geometry.metrics import surface_distance
-from statfit.register.job import register
+from statfit.registration.job import register
 from statfit.structures.scan import Scan, estimate_normals
 from statfit.synth.scanner import neck_tube, realistic_scan
 from statfit.synth.sample import scan_from_view
@@ -183,8 +183,8 @@ def test_the_points_beyond_the_face_fits_scalp_are_the_hair(embedded_model):
     """On the true shape and pose, what the polish leaves out as hair is the hair: every point the
     scanner took off the hair layer (0.056–0.104 radii out) and none of the head's."""
     from statfit.structures.frame import Frame
-    from statfit.register.pose import POSE_FACE_RADIUS
-    from statfit.register.hair import hair_suspects
+    from statfit.registration.pose.search import POSE_FACE_RADIUS
+    from statfit.registration.hair import hair_suspects
     from statfit.model.statmodel import face_triangles
 
     model = embedded_model
@@ -225,7 +225,7 @@ def test_the_scalp_lies_above_and_behind_the_face(ict_model, embedded_model):
 def test_hair_is_what_lies_beyond_the_offset_off_the_face():
     """On a unit sphere, points pushed out along the normal by 0.08 (beyond HAIR_OFFSET 0.05) off the
     face are hair; 0.02 out, pushed in, or over the face (z > 0.5) are not."""
-    from statfit.register.hair import HAIR_OFFSET, hair_suspects
+    from statfit.registration.hair import HAIR_OFFSET, hair_suspects
 
     sphere = trimesh.creation.icosphere(4)
     rng = np.random.default_rng(0)
@@ -250,7 +250,7 @@ def test_the_fit_leaves_the_hair_out_and_fits_the_rest_of_the_head(embedded_mode
     as near as on the clean scan."""
     import importlib
 
-    hair_module = importlib.import_module("statfit.register.hair")
+    hair_module = importlib.import_module("statfit.registration.hair")
     model = embedded_model
     face = model.regions["face"]
     errors = {}
@@ -271,7 +271,7 @@ def test_the_fit_leaves_the_hair_out_and_fits_the_rest_of_the_head(embedded_mode
 def test_hair_does_not_tilt_the_pose(embedded_model):
     """Scans whose only clutter is hair: posed as well as with the hair cut out of the scan, and
     better than when the last polish fits the hair too (measured: 0.14–0.24° against 0.14–0.51°)."""
-    import statfit.register.hair as hair_module
+    import statfit.registration.hair as hair_module
 
     model = embedded_model
     angles = {"hair left out": [], "hair fitted": [], "hair cut out": []}
@@ -297,7 +297,7 @@ def test_on_a_cluttered_scan_the_pose_leaves_the_scalp_to_the_hair(ict_model):
     neck and shoulders: with the scalp region left out of the polish, the pose lands nearer the
     truth than when only the points beyond a face fit's scalp are (docs/studies.md §16, "The scalp
     as a region"; measured 0.34° against 0.88° on these four, 0.39° against 2.00° at worst)."""
-    import statfit.register.pose as global_align
+    import statfit.registration.pose.search as global_align
 
     model = _ict_with_inner_landmarks(ict_model)
     angles: dict[str, list[float]] = {"scalp left out": [], "beyond the face fit only": []}

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from statfit.geometry.metrics import evaluate, observed_vertices
-from statfit.register.job import register
+from statfit.registration.job import register
 from statfit.synth.sample import sample_target, scan_from_view
 
 pytestmark = pytest.mark.slow

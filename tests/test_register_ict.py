@@ -29,7 +29,7 @@ def fit_report(case: str, method: str, preset: str) -> dict:
 
     from statfit.geometry.metrics import evaluate, observed_vertices
     from statfit.model.statmodel import load_model
-    from statfit.register.job import register
+    from statfit.registration.job import register
     from statfit.synth.sample import load_delta, sample_target, scan_from_view
 
     torch.set_num_threads(1)

@@ -19,7 +19,7 @@ from statfit.render.job import reconstruct
 from statfit.io.mesh import load_scan, mesh_bytes
 from statfit.io.normalmap import camera_for_map, read_normal_map
 from statfit.model.statmodel import StatModel
-from statfit.register.job import register
+from statfit.registration.job import register
 from statfit.core.settings import Settings
 from statfit.core.threads import flush_denormals_everywhere, limit_threads
 

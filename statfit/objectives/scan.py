@@ -12,7 +12,7 @@ surface's up to sign (within 60°) and its distance is within OUTLIER_SIGMAS rob
 deviations (1.4826 × the median distance of the points left, at least FLOOR). Then the ``1 − trim``
 quantile of the farthest is left out too, until the next refresh. The clutter rules cost a fit of a
 clean scan with a large expression (the expression's points are far at first, like clutter: +23% on
-the ICT jaw-open case), so they are for scans that hold clutter (:mod:`statfit.register`). With a region (a mask over triangles), points are still attached
+the ICT jaw-open case), so they are for scans that hold clutter (:mod:`statfit.registration`). With a region (a mask over triangles), points are still attached
 to the closest point of the whole surface, and only those that land on a region triangle count:
 scan points of other parts (hair, shoulders) neither pull the region nor the rest.
 """

@@ -14,8 +14,8 @@ from statfit.core.device import resolve_device
 from statfit.errors import StatfitError, StatfitWarning
 from statfit.core.fit import StageTimer
 from statfit.structures.frame import UNIT_MISMATCH_FACTOR, Frame
-from statfit.register.pose import CLUTTER_MATCHED, DISTINCT_DEGREES, estimate_pose, refine_pose
-from statfit.register.hair import hair_points
+from statfit.registration.pose.search import CLUTTER_MATCHED, DISTINCT_DEGREES, estimate_pose, refine_pose
+from statfit.registration.hair import hair_points
 from statfit.core.methods import landmark_weight as method_landmark_weight, resolve
 from statfit.core.settings import FitSpace, Settings
 from statfit.model.statmodel import StatModel, face_triangles, region_triangles, scalp_triangles
@@ -86,9 +86,9 @@ def landmark_alignment(model: StatModel, landmarks: np.ndarray) -> Similarity:
 def prealign(model: StatModel, scan: Scan, align: str, landmarks: np.ndarray | None = None, seed: int = 0
              ) -> tuple[Similarity, dict | None]:
     """The model→scan transform for ``align`` in auto|none|rigid|similarity, and for auto the
-    pose search's report (:mod:`statfit.register.pose`); checks units first. With ``landmarks``
+    pose search's report (:mod:`statfit.registration.pose.search`); checks units first. With ``landmarks``
     (L, 3), the landmark similarity is the start: with align auto polished on the scan
-    (:func:`statfit.register.pose.refine_pose`, whose report is returned), with none the result."""
+    (:func:`statfit.registration.pose.search.refine_pose`, whose report is returned), with none the result."""
     if align not in ALIGNMENTS:
         raise StatfitError(f"unknown alignment {align!r}; choose one of {', '.join(ALIGNMENTS)}")
     points = scan.points
@@ -127,7 +127,7 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
     from a mesh scan by area), with ``method``.
 
     ``align``: ``auto`` finds the scan's pose, scale and power-of-ten units without landmarks and
-    leaves a scan that already lies on the model where it is (:mod:`statfit.register.pose`; its
+    leaves a scan that already lies on the model where it is (:mod:`statfit.registration.pose.search`; its
     report is the result's ``pose``); ``none`` takes the scan as lying in the model's frame;
     ``rigid``/``similarity``: ICP from the centroids.
 
@@ -139,7 +139,7 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
     :func:`statfit.core.methods.landmark_weight`; :mod:`statfit.objectives.landmarks`).
     ``clutter`` turns on the data term's rules for points off the template (normals, robust
     distance; :mod:`statfit.objectives.scan`) and, without a ``region``, leaves out the points a fit
-    of the model's face alone finds to be hair and those nearest its scalp (:mod:`statfit.register.hair`:
+    of the model's face alone finds to be hair and those nearest its scalp (:mod:`statfit.registration.hair`:
     hair passes every rule), or keeps the data term to the face (:func:`face_triangles`) when most
     of the scan is out there;
     ``None``: on when the automatic alignment found more than 1 − CLUTTER_MATCHED of the points

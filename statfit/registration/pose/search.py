@@ -25,7 +25,7 @@ back to front, turned by 90°). So:
    1 − CLUTTER_MATCHED of the points unexplained (clutter), on everything but the scalp
    (:func:`statfit.model.statmodel.scalp_triangles`: the face, the ears, the jaw and the sides below the
    hairline, a longer lever for the head's tilt than the face alone); and last on every point
-   except those lying :data:`statfit.register.hair.HAIR_OFFSET` beyond the second pass's scalp and, with
+   except those lying :data:`statfit.registration.hair.HAIR_OFFSET` beyond the second pass's scalp and, with
    clutter, those on the scalp.
 6. **Score**: a truncated residual — each point's squared distance capped at TOLERANCE², a point
    whose normal disagrees counting as the cap — over the cap: 0 is a perfect fit, 1 nothing
@@ -51,7 +51,7 @@ from statfit.geometry.closest import ClosestPointQuery
 from statfit.errors import StatfitError
 from statfit.structures.frame import Frame
 from statfit.core.gauss_newton import fit_coefficients, mode_directions
-from statfit.register.hair import hair_suspects
+from statfit.registration.hair import hair_suspects
 from statfit.model.statmodel import StatModel, face_triangles, scalp_triangles
 from statfit.objectives.scan import ScanObjective
 from statfit.structures.scan import Scan

@@ -7,7 +7,7 @@ model's modes carry the head's shape with it. Points lying more than HAIR_OFFSET
 nearest to a triangle off the face, are hair (or a hat, or anything else over the head); the rest of
 the scan — the face, the ears and the sides of the head it leaves bare — can then be fitted whole
 (docs/method.md, "The registration objective"). Both the pose search
-(:mod:`statfit.register.pose`) and the fit (:mod:`statfit.register`) use this rule.
+(:mod:`statfit.registration.pose.search`) and the fit (:mod:`statfit.registration`) use this rule.
 
 That scalp is a guess, and for a person outside the model a few millimetres off: hair 5 mm out
 then passes for skin. So on a scan with clutter, every point nearest the scalp region
