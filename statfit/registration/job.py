@@ -14,7 +14,8 @@ from statfit.core.device import resolve_device
 from statfit.errors import StatfitError, StatfitWarning
 from statfit.core.fit import StageTimer
 from statfit.structures.frame import UNIT_MISMATCH_FACTOR, Frame
-from statfit.registration.pose.search import CLUTTER_MATCHED, DISTINCT_DEGREES, estimate_pose, refine_pose
+from statfit.registration.pose.hypotheses import DISTINCT_DEGREES
+from statfit.registration.pose.search import CLUTTER_MATCHED, estimate_pose, refine_pose
 from statfit.registration.hair import hair_points
 from statfit.core.methods import landmark_weight as method_landmark_weight, resolve
 from statfit.core.settings import FitSpace, Settings

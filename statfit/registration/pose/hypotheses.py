@@ -1,0 +1,65 @@
+"""Step 2 of the pose search: the starting poses, one per rotation of the icosahedral group, and
+the poses as arrays."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from statfit.geometry.align import Similarity
+
+HYPOTHESES = Rotation.create_group("I").as_matrix()   # (60, 3, 3)
+DISTINCT_DEGREES = 30.0
+
+
+@dataclass
+class Poses:
+    """H similarities x ↦ s R x + t, as arrays: s (H,), R (H, 3, 3), t (H, 3)."""
+
+    scale: np.ndarray
+    rotation: np.ndarray
+    translation: np.ndarray
+
+    def to_model(self, points: np.ndarray) -> np.ndarray:
+        """Points (M, 3) mapped back by each pose: (H, M, 3)."""
+        return np.einsum("hmi,hij->hmj", points[None] - self.translation[:, None], self.rotation) \
+            / self.scale[:, None, None]
+
+    @classmethod
+    def of(cls, pose: Similarity) -> "Poses":
+        """One pose."""
+        return cls(np.array([pose.scale]), pose.rotation[None], pose.translation[None])
+
+    def subset(self, indices: np.ndarray) -> "Poses":
+        """The poses at ``indices`` (K,)."""
+        return Poses(self.scale[indices], self.rotation[indices], self.translation[indices])
+
+    def pick(self, index: int) -> Similarity:
+        return Similarity(float(self.scale[index]), self.rotation[index], self.translation[index])
+
+
+def hypothesis_starts(model_unit: np.ndarray, model_normals: np.ndarray, facing: np.ndarray) -> Poses:
+    """One pose per hypothesis rotation: the model's vertices facing ``facing`` (scan frame)
+    centred on the origin (the scan's centroid)."""
+    count = len(HYPOTHESES)
+    translation = np.empty((count, 3))
+    for h, rotation in enumerate(HYPOTHESES):
+        visible = model_normals @ (rotation.T @ facing) > 0.3
+        translation[h] = -rotation @ model_unit[visible].mean(axis=0)
+    return Poses(np.ones(count), HYPOTHESES.copy(), translation)
+
+
+def distinct_poses(poses: Poses, order: np.ndarray, count: int) -> list[int]:
+    """The first ``count`` poses in ``order`` that differ pairwise by ≥ DISTINCT_DEGREES."""
+    chosen: list[int] = []
+    for index in order:
+        if all(angle_between(poses.rotation[index], poses.rotation[other]) >= DISTINCT_DEGREES for other in chosen):
+            chosen.append(int(index))
+        if len(chosen) == count:
+            break
+    return chosen
+
+
+def angle_between(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.degrees(Rotation.from_matrix(a.T @ b).magnitude()))

@@ -1,0 +1,41 @@
+"""Step 6 of the pose search: how well a pose explains the scan, and when no pose is plausible."""
+from __future__ import annotations
+
+import numpy as np
+
+from statfit.errors import StatfitError
+from statfit.registration.pose.hypotheses import Poses
+from statfit.registration.pose.icp import Matcher
+
+TOLERANCE = 0.05           # truncation of the score, model RMS radii (≈ 5 mm on a head)
+POLISH_TOLERANCE = 0.02    # the polished poses' score: a fit with every mode lies this close, clutter farther
+IMPLAUSIBLE_RMS = 2.0       # coefficients (std-devs) no scan of a face needs, on average ...
+IMPLAUSIBLE_COEFFICIENT = 6.5  # ... or for one mode (a chance of ~1e-10 under the model)
+MIN_MATCHED = 0.3          # fewer scan points than this within TOLERANCE: no part of the scan is the model
+
+
+def score_poses(matcher: Matcher, points: np.ndarray, normals: np.ndarray, poses: Poses, tolerance: float = TOLERANCE
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Truncated residual (H,) in [0, 1] and matched share (H,) of each pose."""
+    local = poses.to_model(points)
+    _, _, distance, agree = matcher(local, np.einsum("mi,hij->hmj", normals, poses.rotation))
+    inlier = agree & (distance < tolerance)
+    capped = np.where(agree, np.minimum(distance / tolerance, 1.0) ** 2, 1.0)
+    return capped.mean(axis=1), inlier.mean(axis=1)
+
+
+def check_plausible(matched: float, coefficients: np.ndarray, tolerance: float) -> None:
+    """Refuse a scan that nothing of the model matches, or only a shape far outside the model:
+    fewer than MIN_MATCHED of its points near the first modes' best fit, or the best fit with every
+    mode needing coefficients beyond IMPLAUSIBLE_RMS on average or IMPLAUSIBLE_COEFFICIENT in one
+    mode (measured: a sphere, a plane, a shoulders tube ≥ 3.0 on average and ≥ 9.7 in one mode;
+    realistic face scans with clutter ≤ 1.3 and ≤ 4.0)."""
+    if matched < MIN_MATCHED:
+        raise StatfitError(f"the scan does not look like the model anywhere: at best {matched:.0%} of its points lie "
+                           f"within {tolerance:.3g} model units of the surface in any pose (need {MIN_MATCHED:.0%}); "
+                           "is it a scan of what the model describes?")
+    rms, largest = float(np.sqrt(np.mean(coefficients**2))), float(np.abs(coefficients).max())
+    if rms > IMPLAUSIBLE_RMS or largest > IMPLAUSIBLE_COEFFICIENT:
+        raise StatfitError(f"the scan does not look like the model's shape: its best fit needs coefficients of "
+                           f"{rms:.1f} standard deviations on average and {largest:.1f} at most, where a scan of what the model "
+                           "describes needs about 1 (if it is one, place it with --landmarks)")
