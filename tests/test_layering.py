@@ -104,3 +104,8 @@ def test_the_rules_catch_a_violation():
     assert layer("statfit.io.mesh") == "io" and layer("statfit.model.importers.cache") == "model"
     assert room("statfit.render.job") != room("statfit.renderer.raster")
     assert room("statfit.render.job") in JOBS and room("statfit.renderer.raster") not in JOBS
+
+
+def test_no_module_is_over_350_lines():
+    long = {name: n for name, path in modules().items() if (n := len(path.read_text().splitlines())) > 350}
+    assert not long, long

@@ -1,0 +1,77 @@
+"""``statfit batch register``: every scan registered to the model."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from statfit.batch.fits import FitJob
+from statfit.core.device import resolve_device
+from statfit.core.methods import resolve
+from statfit.errors import StatfitError
+from statfit.model.statmodel import region_vertices
+from statfit.registration.job import ALIGNMENTS
+from statfit_cli.batch.options import (BatchThreadsOption, ClusterOption, ForceOption, InputsArgument, JsonOption,
+                                       OutDirOption, SchedulerOption, TimeoutOption, WorkersOption)
+from statfit_cli.batch.running import check_engine, model_identity, prepared_inputs, run_fits
+from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, IterationsOption, KOption, LamOption,
+                                LaplacianOption, LrOption, MethodOption, ModeGainOption, ModelOption, PowerOption,
+                                PresetOption, QuietOption, SeedOption, clutter_choice, setting_overrides, within)
+
+
+def batch_register(
+    inputs: list[str] = InputsArgument,
+    out_dir: Path = OutDirOption,
+    model_path: Path = ModelOption,
+    k: int = KOption,
+    method: str = MethodOption,
+    preset: str = PresetOption,
+    workers: int = WorkersOption,
+    scheduler: str = SchedulerOption,
+    cluster: str = ClusterOption,
+    timeout: float = TimeoutOption,
+    force: bool = ForceOption,
+    align: str = typer.Option("auto", help="Pre-alignment of each scan: auto (pose, scale and units found), none, "
+                              "rigid or similarity (see `statfit register --help`)."),
+    region: str = typer.Option(None, "--region", help="Fit only the model's region NAME (see `statfit register "
+                               "--help`).", show_default=False),
+    refresh: int = typer.Option(10, help="Recompute closest surface points every N iterations.",
+                                callback=within(1, 100_000)),
+    trim: float = typer.Option(0.05, help="Fraction of farthest scan points ignored.", callback=within(0, 0.99)),
+    clutter: str = ClutterOption,
+    device: str = DeviceOption,
+    threads: int = BatchThreadsOption,
+    seed: int = SeedOption,
+    iterations: int = IterationsOption,
+    lr: float = LrOption,
+    beta: float = BetaOption,
+    power: float = PowerOption,
+    lam: float = LamOption,
+    laplacian: str = LaplacianOption,
+    mode_gain: float = ModeGainOption,
+    quiet: bool = QuietOption,
+    json_out: bool = JsonOption,
+) -> None:
+    """Register every scan to the model; a rerun skips the scans already done with these settings.
+
+    Each scan gets OUT_DIR/<its path below the scans' common folder>.ply, the same mesh `statfit
+    register` gives with the same options and seed. A scan that cannot be fitted is recorded as
+    failed with its reason and the batch goes on. Examples:
+
+        \b
+        statfit batch register 'scans/**/*.ply' --model model.npz --out-dir fits/ --workers 2
+        statfit batch register 'scans/**/*.ply' --model model.npz --out-dir fits/ --scheduler tcp://head:8786
+        statfit batch status fits/
+    """
+    check_engine(scheduler, cluster)
+    stages = resolve(method, preset, **setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain))
+    if align not in ALIGNMENTS:
+        raise StatfitError(f"unknown alignment {align!r}; choose one of {', '.join(ALIGNMENTS)}")
+    model_file, digest, model = model_identity(model_path, k)
+    if region is not None:
+        region_vertices(model, region)
+    items = prepared_inputs(inputs, out_dir)
+    job = FitJob("register", model_file, k, stages, dict(align=align, region=region, refresh_every=refresh,
+                                                         trim=trim, seed=seed, clutter=clutter_choice(clutter)),
+                 threads=threads, device=str(resolve_device(device)), model_digest=digest)
+    run_fits(items, job, out_dir, workers, scheduler, cluster, timeout, force, quiet, json_out)

@@ -1,0 +1,87 @@
+"""``statfit batch render``: the model fitted to every normal map."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from statfit.batch.fits import FitJob
+from statfit.core.device import resolve_device
+from statfit.errors import StatfitError
+from statfit.io.normalmap import read_camera
+from statfit.model.statmodel import region_vertices
+from statfit.objectives.normals import SILHOUETTE_WEIGHT
+from statfit.render.job import ALIGNMENTS, NORMAL_CONVENTIONS, NORMAL_SPACES, render_stages
+from statfit_cli.batch.options import (BatchThreadsOption, ClusterOption, ForceOption, InputsArgument, JsonOption,
+                                       OutDirOption, SchedulerOption, TimeoutOption, WorkersOption)
+from statfit_cli.batch.running import check_engine, model_identity, prepared_inputs, run_fits
+from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, KOption, LamOption, LaplacianOption,
+                                LrOption, MethodOption, ModeGainOption, ModelOption, PowerOption, PresetOption,
+                                QuietOption, SeedOption, setting_overrides, within)
+
+
+def batch_render(
+    inputs: list[str] = InputsArgument,
+    out_dir: Path = OutDirOption,
+    camera_path: Path = typer.Option(None, "--camera", "-c", help="One camera JSON for every map. Default: each "
+                                     "map's own camera, from its EXR header.", show_default=False),
+    camera_from_header: bool = typer.Option(False, "--camera-from-header", help="Each map's camera from its EXR "
+                                            "header (the default; say it to make a script explicit)."),
+    model_path: Path = ModelOption,
+    k: int = KOption,
+    method: str = MethodOption,
+    preset: str = PresetOption,
+    workers: int = WorkersOption,
+    scheduler: str = SchedulerOption,
+    cluster: str = ClusterOption,
+    timeout: float = TimeoutOption,
+    force: bool = ForceOption,
+    align: str = typer.Option("rigid", help="Initial alignment: rigid, similarity or none (see `statfit render "
+                              "--help`)."),
+    normal_space: str = typer.Option("world", help="Frame of the maps' normals: world or camera."),
+    normal_convention: str = typer.Option("opencv", help="Axes of camera-space normals: opencv or opengl."),
+    silhouette_weight: float = typer.Option(SILHOUETTE_WEIGHT, help="Weight of the silhouette term (0: off).",
+                                            callback=within(0, 1e6)),
+    region: str = typer.Option(None, "--region", help="Fit only the model's region NAME.", show_default=False),
+    device: str = DeviceOption,
+    threads: int = BatchThreadsOption,
+    seed: int = SeedOption,
+    iterations: int = IterationsOption,
+    lr: float = LrOption,
+    beta: float = BetaOption,
+    power: float = PowerOption,
+    lam: float = LamOption,
+    laplacian: str = LaplacianOption,
+    mode_gain: float = ModeGainOption,
+    quiet: bool = QuietOption,
+    json_out: bool = JsonOption,
+) -> None:
+    """Fit the model to every normal map (inverse rendering); a rerun skips the maps already done.
+
+    Example:
+
+        \b
+        statfit batch render 'maps/*.exr' --camera-from-header --model model.npz --out-dir fits/ --workers 2
+    """
+    check_engine(scheduler, cluster)
+    if camera_path is not None and camera_from_header:
+        raise StatfitError("use either --camera FILE or --camera-from-header, not both")
+    stages = render_stages(method, preset, region,
+                           **setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain))
+    for value, allowed, name in ((align, ALIGNMENTS, "alignment"), (normal_space, NORMAL_SPACES, "normal space"),
+                                 (normal_convention, NORMAL_CONVENTIONS, "normal convention")):
+        if value not in allowed:
+            raise StatfitError(f"unknown {name} {value!r}; choose one of {', '.join(allowed)}")
+    camera = None
+    if camera_path is not None:
+        read_camera(camera_path)  # checked once, here
+        camera = str(camera_path.resolve())
+    model_file, digest, model = model_identity(model_path, k)
+    if region is not None:
+        region_vertices(model, region)
+    items = prepared_inputs(inputs, out_dir)
+    job = FitJob("render", model_file, k, stages,
+                 dict(camera=camera, align=align, normal_space=normal_space, normal_convention=normal_convention,
+                      silhouette_weight=silhouette_weight, region=region, seed=seed),
+                 threads=threads, device=str(resolve_device(device)), model_digest=digest)
+    run_fits(items, job, out_dir, workers, scheduler, cluster, timeout, force, quiet, json_out)
