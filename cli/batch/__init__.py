@@ -7,6 +7,7 @@ import typer
 
 from statfit_cli.batch.register import batch_register
 from statfit_cli.batch.render import batch_render
+from statfit_cli.batch.report import report
 from statfit_cli.batch.status import status
 
 app = typer.Typer(help="Fit datasets: many inputs, resumable, on local processes or a Dask cluster. "
@@ -16,3 +17,4 @@ app = typer.Typer(help="Fit datasets: many inputs, resumable, on local processes
 app.command("register")(batch_register)
 app.command("render")(batch_render)
 app.command("status")(status)
+app.command("report")(report)
