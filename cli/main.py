@@ -1,6 +1,7 @@
 """The ``statfit`` command: sub-commands and the one place where errors become exit code 2."""
 from __future__ import annotations
 
+import os
 import sys
 import warnings
 
@@ -47,8 +48,8 @@ def _fail(message: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Run the CLI on ``argv`` (default: the process's arguments); user errors print one line on
-    stderr and exit with code 2."""
+    """Run the CLI on ``argv`` (default: the process's arguments); user errors, and any fault inside
+    a fit, print one line on stderr and exit with code 2."""
     flush_denormals_everywhere()  # before any parallel kernel, so every worker thread inherits it
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # library warnings are printed by the commands themselves
@@ -67,6 +68,14 @@ def main(argv: list[str] | None = None) -> None:
             _fail("interrupted")
         except BrokenPipeError:
             raise SystemExit(1)
+        except MemoryError:
+            _fail("out of memory (try a smaller input, fewer modes with --k, or --device cpu)")
+        except Exception as exc:  # a fault inside a fit: one line, never a traceback (STATFIT_DEBUG=1 shows it)
+            if os.environ.get("STATFIT_DEBUG"):
+                raise
+            first = (str(exc).splitlines() or [""])[0]
+            _fail(f"the fit failed inside statfit ({type(exc).__name__}: {first}); nothing was written. Please "
+                  "report it with the inputs; STATFIT_DEBUG=1 shows where")
     raise SystemExit(code if isinstance(code, int) else 0)
 
 

@@ -15,6 +15,7 @@ from statfit.model.importers import import_model
 from statfit.model.importers.makehuman import read_makehuman
 from statfit.model.importers.makehuman_shapes import BodySpace, body_regions, build_body_model
 from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, write_atomic
+from statfit.model.cut import decimated, region_part, rescaled
 from statfit.model.statmodel import StatModel, save_model, units_guess
 from statfit.model.importers.cache import open_model
 from statfit_cli.common import SeedOption, printed_warnings, seed_option, within
@@ -139,6 +140,42 @@ def build_makehuman(
     shares = ", ".join(f"{key}: {value:.4%}" for key, value in report["variance_explained"].items())
     print(f"{out}: {_summary(built.model)} from {samples} random bodies; variance explained by the first k "
           f"modes: {shares}")
+
+
+@app.command("cut")
+def cut(
+    model_path: Path = typer.Argument(..., help=f"The model: {ANY_MODEL}.", show_default=False),
+    out: Path = typer.Option(..., "--out", "-o", help="Model npz to write.", show_default=False),
+    region: str = typer.Option(None, "--region", help="Keep only this region of the model (see `statfit model "
+                               "info`), e.g. face: a face-mask model cut from a head.", show_default=False),
+    vertices: int = typer.Option(None, "--vertices", help="Decimate to about this many vertices (each kept vertex "
+                                 "keeps its place and modes; landmarks move to the nearest kept vertex).",
+                                 show_default=False, callback=within(4, 10_000_000)),
+    scale: float = typer.Option(1.0, "--scale", help="Multiply lengths by this factor (10: cm → mm).",
+                                callback=within(0, 1e6, above=True)),
+    json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
+) -> None:
+    """Another model made from MODEL: a region of it, fewer vertices, other units. Its modes are
+    re-derived from the original's on the kept vertices, so it describes the same people.
+
+        statfit model cut ict.npz --region face --vertices 3000 --scale 10 -o face_mask_mm.npz
+    """
+    _check_output(out, model_path)
+    model = open_model(model_path)
+    with printed_warnings():
+        if region is not None:
+            model = region_part(model, region)
+        if vertices is not None:
+            model = decimated(model, vertices)
+    model = rescaled(model, scale)
+    save_model(model, out)
+    report = {"output": str(out), "vertices": model.num_vertices, "faces": int(len(model.faces)),
+              "modes": model.num_modes, "landmarks": 0 if model.landmarks is None else int(model.landmarks.size),
+              "regions": sorted(model.regions), "units_guess": units_guess(model.template)}
+    if json_out:
+        print(json.dumps(report))
+        return
+    print(f"{out}: {_summary(model)}, units {report['units_guess']}")
 
 
 @app.command("sample")

@@ -21,7 +21,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import study_splat  # noqa: E402
 
-from statfit import methods  # noqa: E402
+from statfit.core import methods  # noqa: E402
 from statfit.core.settings import Settings  # noqa: E402
 
 RESULTS = study_splat.ROOT / "studies" / "results" / "splat_second_stage.json"

@@ -11,6 +11,7 @@ from statfit.geometry.align import Similarity
 
 HYPOTHESES = Rotation.create_group("I").as_matrix()   # (60, 3, 3)
 DISTINCT_DEGREES = 30.0
+VISIBLE_COSINE = 0.3       # a vertex faces the scanner when its normal is within ~73° of the view
 
 
 @dataclass
@@ -40,14 +41,15 @@ class Poses:
 
 
 def hypothesis_starts(model_unit: np.ndarray, model_normals: np.ndarray, facing: np.ndarray) -> Poses:
-    """One pose per hypothesis rotation: the model's vertices facing ``facing`` (scan frame)
-    centred on the origin (the scan's centroid)."""
-    count = len(HYPOTHESES)
-    translation = np.empty((count, 3))
-    for h, rotation in enumerate(HYPOTHESES):
-        visible = model_normals @ (rotation.T @ facing) > 0.3
-        translation[h] = -rotation @ model_unit[visible].mean(axis=0)
-    return Poses(np.ones(count), HYPOTHESES.copy(), translation)
+    """One pose per hypothesis rotation: the model's vertices (N, 3) facing ``facing`` (3,) (scan
+    frame) centred on the origin (the scan's centroid). A rotation that shows the scanner no vertex
+    (a face mask turned away: it has no back) places the whole template there instead; such a pose
+    fits the scan badly and is screened out by its score."""
+    translation = np.empty((len(HYPOTHESES), 3))
+    for h, rotation in enumerate(HYPOTHESES):       # 60 rotations, each a vectorised pass over the vertices
+        visible = model_normals @ (rotation.T @ facing) > VISIBLE_COSINE
+        translation[h] = -rotation @ (model_unit[visible] if visible.any() else model_unit).mean(axis=0)
+    return Poses(np.ones(len(HYPOTHESES)), HYPOTHESES.copy(), translation)
 
 
 def distinct_poses(poses: Poses, order: np.ndarray, count: int) -> list[int]:

@@ -1,0 +1,151 @@
+"""Models statfit was not tuned on: face masks (the front of a face only, as BFM 2017 and most
+scanner-built models are), cut from the embedded head and from ICT, decimated, in millimetres.
+
+Every command must fit such a model or refuse in one line; the pose search must find a mask's pose
+as it finds a closed head's."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from statfit.io.mesh import mesh_bytes, read_mesh
+from statfit.model.cut import decimated, region_part, rescaled, vertex_subset
+from statfit.model.statmodel import load_model, save_model, with_landmarks, with_regions
+from statfit.registration.pose.search import estimate_pose
+from statfit.structures.scan import Scan
+from statfit.synth.scanner import realistic_scan
+
+from conftest import ICT_DIR, run_cli
+
+
+def _angle(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(a.T @ b) - 1) / 2, -1, 1))))
+
+
+@pytest.fixture(scope="module")
+def embedded_mask(embedded_model):
+    """The embedded head's face region alone, in millimetres: 1,654 vertices, 50 modes."""
+    return rescaled(region_part(embedded_model, "face"), 1000.0)
+
+
+@pytest.fixture(scope="module")
+def ict_mask():
+    """ICT's face geometry alone (vertices 0–9,408), decimated to about 3,000 vertices, in mm."""
+    path = ICT_DIR / "ict_face_identity.npz"
+    if not path.is_file():
+        pytest.skip("ICT-FaceKit model not found")
+    with np.load(path) as raw:
+        face, landmarks = np.arange(int(raw["face_vertex_count"])), raw["landmarks68"]
+    model = with_landmarks(with_regions(load_model(path), {"face": face}), landmarks)
+    return rescaled(decimated(region_part(model, "face"), 3000), 10.0)
+
+
+def mask_vertices(model) -> np.ndarray:
+    """The face region's vertices on a whole triangle of it."""
+    inside = np.zeros(model.num_vertices, dtype=bool)
+    inside[model.regions["face"]] = True
+    return model.faces[inside[model.faces].all(axis=1)]
+
+
+def _covariance(model, rows: np.ndarray) -> np.ndarray:
+    """The model's shape covariance on the coordinates ``rows`` of the flattened vertices."""
+    scaled = model.basis[rows] * model.std
+    return scaled @ scaled.T
+
+
+def test_a_part_describes_the_originals_shapes_there(embedded_model):
+    """Closed form: on the kept vertices, the part's mean is the original's and its covariance
+    (U diag(std²) Uᵀ) the original's restricted — the same people, seen on a subset."""
+    keep = np.unique(embedded_model.faces[:400])
+    part = vertex_subset(embedded_model, keep)
+    rows = (3 * keep[:, None] + np.arange(3)).reshape(-1)
+    assert np.array_equal(part.template, embedded_model.template[keep])
+    assert np.allclose(_covariance(part, np.arange(3 * len(keep))), _covariance(embedded_model, rows),
+                       atol=1e-12 * embedded_model.std[0] ** 2)
+    assert np.allclose(part.basis.T @ part.basis, np.eye(part.num_modes), atol=1e-10)
+
+
+def test_a_decimated_model_keeps_vertices_of_the_original_in_place(embedded_model):
+    small = decimated(embedded_model, 1500)
+    index = {tuple(v): i for i, v in enumerate(embedded_model.template)}
+    origin = np.array([index[tuple(v)] for v in small.template])     # every vertex is one of the original's
+    assert 1200 <= small.num_vertices <= 1800 and len(np.unique(origin)) == small.num_vertices
+    assert np.isin(np.arange(small.num_vertices), small.faces).all()      # no stray vertex
+    landmark_shift = np.linalg.norm(small.template[small.landmarks] - embedded_model.template[embedded_model.landmarks],
+                                    axis=1)
+    spacing = np.linalg.norm(small.template[small.faces[:, 0]] - small.template[small.faces[:, 1]], axis=1).mean()
+    assert landmark_shift.max() < 2 * spacing
+
+
+def test_model_cut_writes_a_face_mask_and_refuses_a_missing_region(tmp_path, embedded_model):
+    source = tmp_path / "head.npz"
+    save_model(embedded_model, source)
+    code, out = run_cli(["model", "cut", str(source), "--region", "face", "--scale", "1000", "-o",
+                         str(tmp_path / "mask.npz")])
+    mask = load_model(tmp_path / "mask.npz")
+    assert code == 0 and mask.num_vertices == 1654, out
+    assert np.allclose(mask.template, 1000 * embedded_model.template[np.unique(mask_vertices(embedded_model))])
+    code, out = run_cli(["model", "cut", str(source), "--region", "ears", "-o", str(tmp_path / "no.npz")])
+    assert code == 2 and "no region 'ears'" in out and not (tmp_path / "no.npz").exists()
+
+
+@pytest.mark.parametrize("seed,units,clutter", [(0, "mm", 0.5), (1, "cm", 0.0), (2, "m", 0.5)])
+def test_the_pose_of_a_face_mask_is_found_in_any_pose_and_units(embedded_mask, seed, units, clutter):
+    """A mask has no back: before, every hypothesis turned away from the scanner saw no vertex and
+    the search ended in NaN. Measured: 0.2–2.2° over six cluttered and six clean scans."""
+    rng = np.random.default_rng(seed)
+    made = realistic_scan(embedded_mask.sample(rng), embedded_mask.faces, rng, yaw_deg=rng.uniform(-40, 40),
+                          clutter=clutter, units=units)
+    estimate = estimate_pose(embedded_mask, Scan.from_mesh(made.vertices, made.faces))
+    assert _angle(estimate.transform.rotation, made.transform.rotation) < 4.0
+    assert estimate.transform.scale == made.transform.scale
+
+
+@pytest.mark.parametrize("method", ["default", "pca", "statistical", "laplacian"])
+def test_register_fits_a_face_mask_with_every_method(tmp_path, embedded_mask, method):
+    model = tmp_path / "mask.npz"
+    save_model(embedded_mask, model)
+    rng = np.random.default_rng(4)
+    truth = embedded_mask.sample(rng)
+    made = realistic_scan(truth, embedded_mask.faces, rng, yaw_deg=25.0, clutter=0.0, units="mm")
+    (tmp_path / "scan.ply").write_bytes(mesh_bytes(made.vertices, made.faces, "ply"))
+    code, out = run_cli(["register", str(tmp_path / "scan.ply"), "--model", str(model), "--method", method,
+                         "--out", str(tmp_path / "fit.ply"), "--quiet"])
+    assert code == 0, out
+    fitted, _ = read_mesh(tmp_path / "fit.ply")
+    error = np.linalg.norm(fitted - made.truth, axis=1).mean()
+    radius = np.sqrt(((made.truth - made.truth.mean(axis=0)) ** 2).sum(axis=1).mean())
+    assert error < 0.05 * radius, (method, error / radius)
+
+
+@pytest.mark.slow
+def test_the_pose_of_an_ict_face_mask_is_found(ict_mask):
+    """ICT's face cut out and decimated (3,052 vertices, 100 modes, mm): measured 0.2–1.9° over six
+    cluttered and six clean scans."""
+    angles = []
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        made = realistic_scan(ict_mask.sample(rng), ict_mask.faces, rng, yaw_deg=rng.uniform(-40, 40),
+                              clutter=0.5 * (seed % 2), units=("mm", "cm")[seed % 2])
+        estimate = estimate_pose(ict_mask, Scan.from_mesh(made.vertices, made.faces))
+        angles.append(_angle(estimate.transform.rotation, made.transform.rotation))
+        assert estimate.transform.scale == made.transform.scale
+    assert max(angles) < 4.0, angles
+
+
+def test_an_unforeseen_fault_inside_a_fit_is_one_line(tmp_path, monkeypatch):
+    """Whatever breaks inside a fit (here: a planted fault) ends as one line on stderr, exit 2,
+    nothing written — never a traceback."""
+    import statfit.registration.job as job
+
+    code, _ = run_cli(["synth", "scan", "--seed", "1", "--out", str(tmp_path / "scan.ply")])
+    assert code == 0
+
+    def broken(*args, **kwargs):
+        raise ValueError("'x' must be finite\nsecond line")
+
+    monkeypatch.setattr(job, "estimate_pose", broken)
+    code, out = run_cli(["register", str(tmp_path / "scan.ply"), "--out", str(tmp_path / "fit.ply")])
+    lines = [line for line in out.splitlines() if line.startswith("statfit: error")]
+    assert code == 2 and len(lines) == 1 and "ValueError: 'x' must be finite" in lines[0], out
+    assert "Traceback" not in out and not (tmp_path / "fit.ply").exists()
