@@ -164,7 +164,8 @@ def test_a_render_batchs_error_is_the_angle_to_the_maps_normals(tmp_path):
     """A render batch whose output is the map's ground truth: the error is the raster's, well under a degree."""
     source, truth = tmp_path / "map.exr", tmp_path / "out" / "map.ply"
     truth.parent.mkdir()
-    assert run_cli(["synth", "normals", "--seed", "4", "--size", "96", "--out", str(source), "--gt", str(truth)])[0] == 0
+    argv = ["synth", "normals", "--seed", "4", "--size", "96", "--out", str(source), "--gt", str(truth)]
+    assert run_cli(argv)[0] == 0
     run = {"event": "run", "key": "k", "settings": {"command": "render", "model": None, "k": None,
                                                     "options": {"normal_space": "world"}}, "inputs": [str(source)]}
     fit = {"event": "fit", "input": str(source), "key": "k", "status": "done", "output": "map.ply", "seconds": 1.0,

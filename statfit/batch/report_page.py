@@ -78,7 +78,8 @@ def _thumbnail(row: ReportRow) -> str:
 def _pose(row: ReportRow) -> str:
     if row.pose_ambiguous is None:
         return _cell("", "")
-    text = f"{'ambiguous' if row.pose_ambiguous else 'clear'} ({_fmt(row.pose_runner_up, '.3f')}/{_fmt(row.pose_score, '.3f')})"
+    scores = f"{_fmt(row.pose_runner_up, '.3f')}/{_fmt(row.pose_score, '.3f')}"
+    text = f"{'ambiguous' if row.pose_ambiguous else 'clear'} ({scores})"
     return _cell(html.escape(text), int(row.pose_ambiguous))
 
 
@@ -88,7 +89,8 @@ def _row_class(row: ReportRow) -> str:
 
 COLUMNS: tuple[tuple[str, str, Callable[[ReportRow], str]], ...] = (
     ("fit", "fit over its data", _thumbnail),
-    ("input", "input", lambda r: _cell(f'<span title="{html.escape(r.input)}">{html.escape(r.output or r.input)}</span>')),
+    ("input", "input", lambda r: _cell(f'<span title="{html.escape(r.input)}">'
+                                       f'{html.escape(r.output or r.input)}</span>')),
     ("status", "status", lambda r: _cell(html.escape(r.status + (" · outlier" if r.outlier else "")))),
     ("reason", "reason", lambda r: _cell(html.escape(r.reason), css="reason")),
     ("error_mean", "mean error", lambda r: _number(r.error_mean)),
@@ -120,8 +122,9 @@ def report_html(batch: Batch, rows: list[ReportRow]) -> str:
 <style>{STYLE}</style></head>
 <body>
 <h1>statfit batch {html.escape(batch.command)}: {html.escape(str(batch.out_dir))}</h1>
-<p>{len(rows)} input{'' if len(rows) == 1 else 's'}: {html.escape(summary)}. Failures, rows whose files cannot be checked and outliers (mean
-error above the median + {OUTLIER_MADS:g}·MAD of the batch) come first; click a header to sort.</p>
+<p>{len(rows)} input{'' if len(rows) == 1 else 's'}: {html.escape(summary)}. Failures, rows whose files cannot
+be checked and outliers (mean error above the median + {OUTLIER_MADS:g}·MAD of the batch) come first; click a
+header to sort.</p>
 <p>Error: {html.escape(unit)}. Thumbnail: {html.escape(view)}.</p>
 <table id="rows"><thead><tr>{head}</tr></thead>
 <tbody>
