@@ -59,6 +59,10 @@ ThreadsOption = typer.Option(None, help="CPU threads for the fit. Default: 1 for
 SeedOption = seed_option(0, "Random seed; the same seed gives the same mesh.")
 LogOption = typer.Option(None, help="JSON-lines log: header, a record every 10 iterations, summary.",
                          show_default=False)
+ParamsOption = typer.Option(None, "--params", help="Also write the fit's code in the model (.json or .npz): the "
+                            "similarity model → data, the coefficients (standard deviations, one per mode) and what "
+                            "the modes do not explain; `statfit model sample --params FILE` remakes the mesh "
+                            "(docs/formats.md, \"Params file\"). E.g. --params fit.params.json", show_default=False)
 QuietOption = typer.Option(False, "--quiet", "-q", help="No progress bar.")
 JsonOption = typer.Option(False, "--json", help="Print each fit's summary as a JSON line on stdout.")
 IterationsOption = typer.Option(None, help="Iterations (all stages together). Default: the method's.",

@@ -10,7 +10,7 @@ from rich.console import Console
 from rich.table import Table
 
 from statfit.errors import StatfitError
-from statfit.io.mesh import read_mesh, read_points
+from statfit.io.mesh import read_mesh, read_points, read_vertex_fields
 from statfit.io.normalmap import camera_for_map, read_normal_map
 from statfit.geometry.metrics import evaluate as evaluate_fit, observed_vertices, visible_vertices
 from statfit.model.statmodel import region_vertices, units_guess
@@ -36,10 +36,14 @@ def evaluate(
     json_out: bool = typer.Option(False, "--json", help="Print the report as JSON."),
 ) -> None:
     """Per-vertex errors ‖fit − gt‖ over all / observed / unobserved vertices, and the distance of
-    observed ground-truth vertices to the fitted surface.
+    observed ground-truth vertices to the fitted surface. A fit PLY from register, render or splat
+    carries its own split: without --scan/--normals its 'observed' field is used, and its
+    'off_span' field splits the errors into quarters, off_span_q1 (the vertices nearest the
+    model's span) to off_span_q4 (farthest).
 
         \b
         statfit eval fit.ply gt.ply --scan scan.ply --json
+        statfit eval fit.ply gt.ply    # observed and off_span from the fit's PLY fields
         statfit eval fit.ply gt.ply --normals normals.exr --camera camera.json
         statfit eval fit.ply gt.ply --model flame.npz --region face
     """
@@ -52,11 +56,15 @@ def evaluate(
     if fit_vertices.shape != gt_vertices.shape or faces.shape != gt_faces.shape or (faces != gt_faces).any():
         raise StatfitError(f"{fit} and {gt} do not share a topology ({len(fit_vertices)} vs {len(gt_vertices)} vertices)")
     observed = None
+    fields = read_vertex_fields(fit)
     if scan is not None:
         observed = observed_vertices(gt_vertices, read_points(scan))
     elif normals is not None:
         observed = _seen_vertices(gt_vertices, gt_faces, normals, camera_path)
-    report = evaluate_fit(fit_vertices, gt_vertices, faces, observed, _region_mask(model_path, region, len(fit_vertices)))
+    elif "observed" in fields:   # the fit's own record of what its data covered
+        observed = fields["observed"] > 0.5
+    report = evaluate_fit(fit_vertices, gt_vertices, faces, observed, _region_mask(model_path, region, len(fit_vertices)),
+                          fields.get("off_span"))
     if json_out:
         print(json.dumps(report))
         return

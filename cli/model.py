@@ -18,6 +18,8 @@ from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, write_atomi
 from statfit.model.cut import decimated, region_part, rescaled
 from statfit.model.statmodel import StatModel, save_model, units_guess
 from statfit.model.importers.cache import open_model
+from statfit.model.params import posed_shape
+from statfit.model.params_file import read_params
 from statfit_cli.common import SeedOption, printed_warnings, seed_option, within
 
 
@@ -187,16 +189,27 @@ def sample(
     sigma: float = typer.Option(1.0, help="Coefficients ~ N(0, sigma²) in standard deviations; 0 gives the template.",
                                callback=within(0, 100)),
     seed: int = SeedOption,
+    params: Path = typer.Option(None, "--params", help="Instead of a random shape, the shape a params file codes "
+                                "(`register/render/splat --params`): the model at its coefficients, posed by its "
+                                "similarity, in the data's frame. The model (and --k) must be the fit's.",
+                                show_default=False),
+    k: int = typer.Option(None, "--k", help="Use only the first K modes (as the fit did).", show_default=False),
 ) -> None:
-    """A random shape from the model, in the model's topology and units.
+    """A random shape from the model, in the model's topology and units; or, with --params, the
+    shape a fit's params file codes.
 
+        \b
         statfit model sample flame.npz --sigma 2 --seed 1 -o sample.ply
+        statfit model sample flame.npz --params fit.params.json -o projection.ply
     """
     if not np.isfinite(sigma) or sigma < 0:
         raise StatfitError("--sigma must be a finite number ≥ 0")
     check_writable(out)
-    model = open_model(model_path)
-    vertices = model.sample(np.random.default_rng(seed), sigma)
+    model = open_model(model_path, k)
+    if params is not None:
+        vertices = posed_shape(model, read_params(params, model))
+    else:
+        vertices = model.sample(np.random.default_rng(seed), sigma)
     write_atomic(out, mesh_bytes(vertices, model.faces, mesh_format(out)))
 
 

@@ -13,10 +13,13 @@ from statfit.core.device import resolve_device
 from statfit.core.methods import LANDMARK_WEIGHT, landmark_weight as method_landmark_weight, resolve
 from statfit.registration.job import register as fit_scan
 from statfit.model.importers.cache import open_model
+from statfit.geometry.support import scan_support
+from statfit.model.params import project, vertex_fields
+from statfit.model.params_file import params_bytes, params_suffix
 from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, IterationsOption, JsonOption, KOption,
                                 LamOption, LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption,
-                                ModelOption, PowerOption, PresetOption, QuietOption, SeedOption, ThreadsOption,
-                                clutter_choice, setting_overrides, within)
+                                ModelOption, ParamsOption, PowerOption, PresetOption, QuietOption, SeedOption,
+                                ThreadsOption, clutter_choice, setting_overrides, within)
 from statfit_cli.runner import finish, fit_run
 
 
@@ -31,6 +34,7 @@ def register(
     out: str = typer.Option(None, "--out", "-o", help="Fitted mesh (.ply or .obj; '-' for PLY on stdout). "
                             "Default: <scan>_fit.ply here.", show_default=False),
     log: Path = LogOption,
+    params: Path = ParamsOption,
     align: str = typer.Option("auto", help="Pre-alignment. auto: finds the scan's pose, scale and units (mm, cm, m) "
                               "without landmarks, and leaves a scan already on the model where it is; none: the scan "
                               "lies in the model's frame; rigid/similarity: ICP from the centroids."),
@@ -75,6 +79,10 @@ def register(
         \b
         statfit register scan.ply --model model.npz --method statistical --out fit.ply --log fit.jsonl
         statfit register scan.ply --model flame.npz --region face --landmarks scan_landmarks.txt
+        statfit register scan.ply --out fit.ply --params fit.params.json
+
+    The PLY's vertices carry data_distance (to the nearest scan point), observed (0/1) and
+    off_span (distance from the model's span), in the scan's units (docs/formats.md).
     """
     overrides = setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain)
     clutter_rules = clutter_choice(clutter)
@@ -89,7 +97,9 @@ def register(
     target = out or ("-" if scan == "-" else f"{Path(scan).stem}_fit.ply")
     if json_out and target == "-":
         raise StatfitError("--json and --out - both want standard output; choose one")
-    for path in (target, log):
+    if params is not None:
+        params_suffix(params)
+    for path in (target, log, params):
         if path is not None:
             check_writable(path)
     if scan != "-":
@@ -112,4 +122,9 @@ def register(
                "final_loss": result.loss, "seconds": result.seconds, "threads": result.threads,
                "stage_seconds": result.stage_seconds, "model_to_scan": result.transform.as_matrix().tolist(),
                "pose": result.pose}
-    finish(run, summary, {target: mesh_bytes(result.vertices, model.faces, mesh_format(target))}, json_out)
+    projection = project(model, result.vertices, result.transform, (result.pose or {}).get("units_factor"))
+    fields = vertex_fields(projection, *scan_support(result.vertices, points.points))
+    outputs = {target: mesh_bytes(result.vertices, model.faces, mesh_format(target), fields)}
+    if params is not None:
+        outputs[params] = params_bytes(model, projection, params)
+    finish(run, summary, outputs, json_out)

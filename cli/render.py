@@ -13,11 +13,16 @@ from statfit.io.normalmap import apply_mask, camera_for_map, read_normal_map
 from statfit.objectives.normals import SILHOUETTE_WEIGHT
 from statfit.core.device import resolve_device
 from statfit.model.importers.cache import open_model
+from statfit.geometry.support import view_support
+from statfit.model.params import project, vertex_fields
+from statfit.model.params_file import params_bytes, params_suffix
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
                                 LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
-                                PowerOption, PresetOption, QuietOption, SeedOption, ThreadsOption, setting_overrides,
-                                within)
+                                ParamsOption, PowerOption, PresetOption, QuietOption, SeedOption, ThreadsOption,
+                                setting_overrides, within)
 from statfit_cli.runner import finish, fit_run
+
+PREVIEW_COLOURS = ("normals", "data_distance", "off_span", "observed")
 
 
 def render(
@@ -34,6 +39,10 @@ def render(
     log: Path = LogOption,
     preview: Path = typer.Option(None, help="PNG: target and fitted normals, angular error, a second view.",
                                  show_default=False),
+    preview_colour: str = typer.Option("normals", "--preview-colour", help="What the preview's two other views "
+                                       "show: normals, or where the fit guessed: data_distance, off_span or observed "
+                                       "(the fitted PLY's fields, in colour)."),
+    params: Path = ParamsOption,
     align: str = typer.Option("rigid", help="Initial alignment: rigid (the model's coefficients, with a rotation and "
                               "a move parallel to the image where they lower the objective by 10%), similarity "
                               "(also a scale), or none (start from the template as it is)."),
@@ -68,13 +77,23 @@ def render(
     The output mesh has the template's topology and vertex order, in the camera's world frame.
     Example:
 
+        \b
         statfit render normals.exr --camera camera.json --model model.npz --out fit.ply --preview fit.png
+        statfit render normals.exr --params fit.params.json --preview fit.png --preview-colour data_distance
+
+    The PLY's vertices carry data_distance (to the nearest covered pixel's point on the fit),
+    observed (0/1: seen in a covered pixel) and off_span (distance from the model's span), in the
+    camera's world units (docs/formats.md).
     """
     overrides = setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain)
     stages = render_stages(method, preset, region, **overrides)
     torch_device = resolve_device(device)
     out = out or Path(f"{normal_map_path.stem}_fit.ply")
-    for target in (out, log, preview):
+    if preview_colour not in PREVIEW_COLOURS:
+        raise StatfitError(f"unknown --preview-colour {preview_colour!r}; choose one of {', '.join(PREVIEW_COLOURS)}")
+    if params is not None:
+        params_suffix(params)
+    for target in (out, log, preview, params):
         if target is not None:
             check_writable(target)
     normal_map = read_normal_map(normal_map_path)
@@ -101,9 +120,14 @@ def render(
     summary = {"input": str(normal_map_path), "output": str(out), "method": method, "iterations": result.iterations,
                "final_loss": result.loss, "seconds": result.seconds, "threads": result.threads,
                "stage_seconds": result.stage_seconds, "model_to_world": result.transform.as_matrix().tolist()}
-    outputs = {out: mesh_bytes(result.vertices, model.faces, mesh_format(out))}
+    projection = project(model, result.vertices, result.transform)
+    fields = vertex_fields(projection, *view_support(result.vertices, model.faces, [(camera, normal_map.mask)]))
+    outputs = {out: mesh_bytes(result.vertices, model.faces, mesh_format(out), fields)}
+    if params is not None:
+        outputs[params] = params_bytes(model, projection, params)
     if preview is not None:
         from statfit.render.preview import preview_png  # matplotlib is imported only when a preview is asked for
         target = camera_space_normals(normal_map, camera, normal_space, normal_convention)
-        outputs[preview] = preview_png(target, normal_map.mask, result.vertices, model.faces, camera)
+        colour = None if preview_colour == "normals" else (preview_colour, fields[preview_colour])
+        outputs[preview] = preview_png(target, normal_map.mask, result.vertices, model.faces, camera, colour)
     finish(run, summary, outputs, json_out)

@@ -13,6 +13,9 @@ from statfit.structures.camera import Camera
 from statfit.core.device import resolve_device
 from statfit.errors import StatfitError
 from statfit.model.importers.cache import open_model
+from statfit.geometry.support import view_support
+from statfit.model.params import project, vertex_fields
+from statfit.model.params_file import params_bytes, params_suffix
 from statfit.io.files import existing_file
 from statfit.io.image import encoded_image, image_suffix
 from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_mesh, write_atomic
@@ -23,8 +26,8 @@ from statfit.renderer.binding import PATTERNS
 from statfit.splat.job import fit_views, render_splats, splat_records, splat_stages, splats_from_records
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
                                 LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
-                                PowerOption, PresetOption, QuietOption, SeedOption, ThreadsOption, setting_overrides,
-                                within)
+                                ParamsOption, PowerOption, PresetOption, QuietOption, SeedOption, ThreadsOption,
+                                setting_overrides, within)
 from statfit_cli.runner import finish, fit_run
 
 MAX_CAMERA_BYTES = 16 << 20
@@ -43,6 +46,7 @@ def splat(
     preview: Path = typer.Option(None, help="PNG: a held-out view's photograph, the splats, their error and the "
                                  "fitted mesh.", show_default=False),
     log: Path = LogOption,
+    params: Path = ParamsOption,
     per_triangle: int = typer.Option(1, help="Splats per triangle: 1, 3 or 4."),
     views_per_step: int = typer.Option(1, help="Training views rendered per iteration.", callback=within(1, 1000)),
     mask_weight: float = typer.Option(MASK_WEIGHT, help="Weight of the mask term (rendered opacity vs the views' "
@@ -65,15 +69,22 @@ def splat(
     filter, the splats' colours, opacities and sizes are fitted with them. Views marked 'test'
     are held out and scored (PSNR, SSIM) after the fit.
 
+        \b
         statfit synth views --model model.npz --seed 2 --views 24 --size 256 --out views/
         statfit splat views/ --model model.npz --out fit.ply --splats splats.ply --preview fit.png
+        statfit splat views/ --out fit.ply --params fit.params.json
+
+    The PLY's vertices carry data_distance (to the nearest point of the fit seen in a training
+    view's foreground), observed (0/1) and off_span (distance from the model's span).
     """
     if per_triangle not in PATTERNS:
         raise StatfitError(f"--per-triangle must be one of {', '.join(map(str, PATTERNS))}, got {per_triangle}")
     stages = splat_stages(method, preset, **setting_overrides(iterations, lr, beta, power, lam, laplacian,
                                                               mode_gain))
     torch_device = resolve_device(device)
-    for target in (out, splats_out, preview, log):
+    if params is not None:
+        params_suffix(params)
+    for target in (out, splats_out, preview, log, params):
         if target is not None:
             check_writable(target)
     mesh_format(out)
@@ -96,7 +107,12 @@ def splat(
                "stage_seconds": result.fit.stage_seconds, "splats": len(result.splats),
                "held_out": result.mean_scores("test"), "train": result.mean_scores("train"),
                "views": result.scores}
-    outputs = {out: mesh_bytes(vertices, model.faces, mesh_format(out))}
+    projection = project(model, vertices, result.fit.transform)
+    seen = [(view.camera, view.mask) for view in views if view.split == "train"]
+    fields = vertex_fields(projection, *view_support(vertices, model.faces, seen))
+    outputs = {out: mesh_bytes(vertices, model.faces, mesh_format(out), fields)}
+    if params is not None:
+        outputs[params] = params_bytes(model, projection, params)
     if splats_out is not None:
         outputs[splats_out] = splats_bytes(splat_records(result.splats, vertices), len(model.faces))
     if preview is not None:

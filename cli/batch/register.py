@@ -31,6 +31,8 @@ def batch_register(
     cluster: str = ClusterOption,
     timeout: float = TimeoutOption,
     force: bool = ForceOption,
+    params: bool = typer.Option(False, "--params", help="Also write each fit's code in the model beside its mesh, "
+                                "<output stem>.params.json (see `statfit register --help`, docs/formats.md)."),
     align: str = typer.Option("auto", help="Pre-alignment of each scan: auto (pose, scale and units found), none, "
                               "rigid or similarity (see `statfit register --help`)."),
     region: str = typer.Option(None, "--region", help="Fit only the model's region NAME (see `statfit register "
@@ -61,6 +63,7 @@ def batch_register(
         \b
         statfit batch register 'scans/**/*.ply' --model model.npz --out-dir fits/ --workers 2
         statfit batch register 'scans/**/*.ply' --model model.npz --out-dir fits/ --scheduler tcp://head:8786
+        statfit batch register 'scans/*.ply' --out-dir fits/ --params    # fits/<scan>.params.json too
         statfit batch status fits/
     """
     check_engine(scheduler, cluster)
@@ -73,5 +76,5 @@ def batch_register(
     items = prepared_inputs(inputs, out_dir)
     job = FitJob("register", model_file, k, stages, dict(align=align, region=region, refresh_every=refresh,
                                                          trim=trim, seed=seed, clutter=clutter_choice(clutter)),
-                 threads=threads, device=str(resolve_device(device)), model_digest=digest)
+                 threads=threads, device=str(resolve_device(device)), model_digest=digest, params=params)
     run_fits(items, job, out_dir, workers, scheduler, cluster, timeout, force, quiet, json_out)

@@ -36,6 +36,8 @@ def batch_render(
     cluster: str = ClusterOption,
     timeout: float = TimeoutOption,
     force: bool = ForceOption,
+    params: bool = typer.Option(False, "--params", help="Also write each fit's code in the model beside its mesh, "
+                                "<output stem>.params.json (see `statfit register --help`, docs/formats.md)."),
     align: str = typer.Option("rigid", help="Initial alignment: rigid, similarity or none (see `statfit render "
                               "--help`)."),
     normal_space: str = typer.Option("world", help="Frame of the maps' normals: world or camera."),
@@ -62,6 +64,7 @@ def batch_render(
 
         \b
         statfit batch render 'maps/*.exr' --camera-from-header --model model.npz --out-dir fits/ --workers 2
+        statfit batch render 'maps/*.exr' --out-dir fits/ --params    # fits/<map>.params.json too
     """
     check_engine(scheduler, cluster)
     if camera_path is not None and camera_from_header:
@@ -83,5 +86,5 @@ def batch_render(
     job = FitJob("render", model_file, k, stages,
                  dict(camera=camera, align=align, normal_space=normal_space, normal_convention=normal_convention,
                       silhouette_weight=silhouette_weight, region=region, seed=seed),
-                 threads=threads, device=str(resolve_device(device)), model_digest=digest)
+                 threads=threads, device=str(resolve_device(device)), model_digest=digest, params=params)
     run_fits(items, job, out_dir, workers, scheduler, cluster, timeout, force, quiet, json_out)

@@ -19,6 +19,9 @@ from statfit.render.job import reconstruct
 from statfit.io.mesh import load_scan, mesh_bytes
 from statfit.io.normalmap import camera_for_map, read_normal_map
 from statfit.model.statmodel import StatModel
+from statfit.geometry.support import scan_support, view_support
+from statfit.model.params import project, vertex_fields
+from statfit.model.params_file import params_bytes
 from statfit.registration.job import register
 from statfit.core.settings import Settings
 from statfit.core.threads import flush_denormals_everywhere, limit_threads
@@ -44,20 +47,24 @@ class FitJob:
     max_threads: int | None = None
     device: str = "cpu"
     model_digest: str = ""
+    params: bool = False
 
     def settings(self) -> dict[str, Any]:
         """Everything that decides an output, as plain JSON (the manifest's settings key)."""
         return dict(command=self.command, model=self.model, model_digest=self.model_digest, k=self.k, stages=[s.describe() for s in self.stages],
-                    options=self.options, device=self.device, statfit=__version__)
+                    options=self.options, device=self.device, statfit=__version__, **({"params": True} if self.params else {}))
 
 
 @dataclass
 class Outcome:
-    """One input's result: the output's bytes and the fit's summary, or a one-line ``error``."""
+    """One input's result: the output's bytes and the fit's summary, or a one-line ``error``;
+    ``extras``: files written beside the output, by the suffix that replaces its own
+    (``.params.json``)."""
     data: bytes | None
     summary: dict[str, Any]
     error: str | None
     seconds: float
+    extras: dict[str, bytes] = field(default_factory=dict)
 
 
 @lru_cache(maxsize=2)
@@ -94,11 +101,16 @@ def keep_freed_memory() -> bool:
     return bool(libc.mallopt(M_MMAP_THRESHOLD, KEEP_MAPPED_BYTES) and libc.mallopt(M_TRIM_THRESHOLD, KEEP_FREED_BYTES))
 
 
-def _fit(job: FitJob, source: str, model: StatModel) -> tuple[bytes, dict[str, Any]]:
+PARAMS_SUFFIX = ".params.json"
+
+
+def _fit(job: FitJob, source: str, model: StatModel) -> tuple[bytes, dict[str, Any], dict[str, bytes]]:
     common = dict(stages=job.stages, device=job.device, threads=job.threads)
     if job.command == "register":
-        result = register(model, load_scan(source, job.options.get("seed", 0)), **common, **job.options)
+        scan = load_scan(source, job.options.get("seed", 0))
+        result = register(model, scan, **common, **job.options)
         pose = {"model_to_scan": result.transform.as_matrix().tolist(), "pose": result.pose}
+        support = scan_support(result.vertices, scan.points)
     elif job.command == "render":
         options = dict(job.options)
         camera_path = options.pop("camera", None)
@@ -106,10 +118,13 @@ def _fit(job: FitJob, source: str, model: StatModel) -> tuple[bytes, dict[str, A
         camera = camera_for_map(normal_map, camera_path, source)
         result = reconstruct(model, normal_map, camera, **common, **options)
         pose = {"model_to_world": result.transform.as_matrix().tolist()}
+        support = view_support(result.vertices, model.faces, [(camera, normal_map.mask)])
     else:
         raise StatfitError(f"unknown batch command {job.command!r}; choose one of {', '.join(COMMANDS)}")
     summary = dict(iterations=result.iterations, final_loss=result.loss, fit_seconds=result.seconds, **pose)
-    return mesh_bytes(result.vertices, model.faces, "ply"), summary
+    projection = project(model, result.vertices, result.transform, (result.pose or {}).get("units_factor"))
+    extras = {PARAMS_SUFFIX: params_bytes(model, projection, "fit" + PARAMS_SUFFIX)} if job.params else {}
+    return mesh_bytes(result.vertices, model.faces, "ply", vertex_fields(projection, *support)), summary, extras
 
 
 def run_job(job: FitJob, source: str) -> Outcome:
@@ -119,14 +134,14 @@ def run_job(job: FitJob, source: str) -> Outcome:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            data, summary = _fit(job, source, _model(job.model, job.k))
+            data, summary, extras = _fit(job, source, _model(job.model, job.k))
             error = None
         except StatfitError as exc:
-            data, summary, error = None, {}, str(exc)
+            data, summary, extras, error = None, {}, {}, str(exc)
         except MemoryError:
-            data, summary, error = None, {}, "out of memory"
+            data, summary, extras, error = None, {}, {}, "out of memory"
         except Exception as exc:  # a bug or an unforeseen input: recorded, the batch goes on
-            data, summary, error = None, {}, f"{type(exc).__name__}: {exc}".splitlines()[0]
+            data, summary, extras, error = None, {}, {}, f"{type(exc).__name__}: {exc}".splitlines()[0]
     if caught:
         summary["warnings"] = [str(w.message) for w in caught]
-    return Outcome(data, summary, error, time.perf_counter() - started)
+    return Outcome(data, summary, error, time.perf_counter() - started, extras)

@@ -58,6 +58,8 @@ class _Recorder:
                     item.output.parent.mkdir(parents=True, exist_ok=True)
                     self.folders.add(item.output.parent)
                 write_atomic(item.output, outcome.data)
+                for suffix, data in outcome.extras.items():   # beside the output: fit.ply → fit.params.json
+                    write_atomic(item.output.with_suffix(suffix), data)
             except StatfitError as exc:  # write_atomic's message names the file
                 error = str(exc)
             except OSError as exc:

@@ -48,11 +48,13 @@ def _summary(values: np.ndarray, scale: float) -> dict[str, float]:
 
 
 def evaluate(fit: np.ndarray, gt: np.ndarray, faces: np.ndarray, observed: np.ndarray | None = None,
-             region: np.ndarray | None = None) -> dict:
+             region: np.ndarray | None = None, off_span: np.ndarray | None = None) -> dict:
     """Per-vertex errors ‖fit − gt‖ over all / observed / unobserved vertices, plus, on observed
     vertices, the distance of the ground truth to the fitted *surface*. ``mean_rel`` divides by
     the ground truth's RMS radius (unit-free). ``region`` (N,) bool restricts every summary to
-    those vertices."""
+    those vertices. ``off_span`` (N,), each fitted vertex's distance from the model's span (the fit
+    PLY's field): the errors split into its quartiles, ``off_span_q1`` (the vertices closest to the
+    span) to ``off_span_q4``, with the quartiles' edges in ``off_span_edges``."""
     scale = Frame.of(gt).scale
     err = np.linalg.norm(fit - gt, axis=1)
     inside = np.ones(len(gt), dtype=bool) if region is None else region
@@ -61,4 +63,20 @@ def evaluate(fit: np.ndarray, gt: np.ndarray, faces: np.ndarray, observed: np.nd
         report["observed"] = _summary(err[observed & inside], scale)
         report["unobserved"] = _summary(err[~observed & inside], scale)
         report["observed_surface"] = _summary(surface_distance(gt[observed & inside], fit, faces), scale)
+    if off_span is not None:
+        report.update(off_span_quartiles(err[inside], np.asarray(off_span, dtype=np.float64)[inside], scale))
+    return report
+
+
+def off_span_quartiles(err: np.ndarray, off_span: np.ndarray, scale: float) -> dict:
+    """Errors (M,) summarised over the quarters of the vertices ranked by ``off_span`` (M,),
+    ``off_span_q1`` … ``q4`` (ties ranked in vertex order), and ``off_span_edges`` (5,): min, the
+    quartiles, max of ``off_span``."""
+    if err.size == 0:
+        return {}
+    rank = np.empty(err.size, dtype=np.int64)
+    rank[np.argsort(off_span, kind="stable")] = np.arange(err.size)
+    quarter = 4 * rank // err.size                                     # (M,) in 0..3
+    report = {f"off_span_q{q + 1}": _summary(err[quarter == q], scale) for q in range(4)}
+    report["off_span_edges"] = np.quantile(off_span, [0.0, 0.25, 0.5, 0.75, 1.0]).tolist()
     return report

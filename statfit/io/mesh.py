@@ -121,11 +121,33 @@ def read_mesh(source: str | Path) -> tuple[np.ndarray, np.ndarray]:
     return vertices, np.asarray(geometry.faces, dtype=np.int64)
 
 
-def mesh_bytes(vertices: np.ndarray, faces: np.ndarray, file_type: str) -> bytes:
-    """The mesh encoded as ``ply`` (binary) or ``obj``, vertex order kept."""
+def mesh_bytes(vertices: np.ndarray, faces: np.ndarray, file_type: str,
+               fields: dict[str, np.ndarray] | None = None) -> bytes:
+    """The mesh encoded as ``ply`` (binary) or ``obj``, vertex order kept. ``fields``: per-vertex
+    values (N,) each, written as extra PLY vertex properties after x y z in their order (bool as
+    uchar, other values as float32); OBJ carries none."""
     mesh = trimesh.Trimesh(vertices, faces, process=False)
+    if file_type == "ply":
+        for name, values in (fields or {}).items():
+            values = np.asarray(values)
+            if values.shape != (len(mesh.vertices),):
+                raise StatfitError(f"vertex field {name} has shape {values.shape}; the mesh has {len(mesh.vertices)} vertices")
+            mesh.vertex_attributes[name] = values.astype(np.uint8 if values.dtype == bool else np.float32)
     data = mesh.export(file_type=file_type, **({"include_normals": False} if file_type == "obj" else {}))
     return data.encode() if isinstance(data, str) else data
+
+
+def read_vertex_fields(source: str | Path) -> dict[str, np.ndarray]:
+    """The extra per-vertex properties of a PLY (beyond x y z), (N,) float64 each, in file order;
+    empty for other formats or a PLY with none (e.g. a fit's ``data_distance``, ``observed``,
+    ``off_span``, docs/formats.md)."""
+    if str(source) != "-" and Path(source).suffix.lower() != ".ply":
+        return {}
+    raw = getattr(_load(source), "metadata", {}).get("_ply_raw", {}).get("vertex", {}).get("data")
+    if raw is None or raw.dtype.names is None:
+        return {}
+    return {name: np.asarray(raw[name], dtype=np.float64).reshape(-1) for name in raw.dtype.names
+            if name not in ("x", "y", "z") and raw[name].ndim == 1}
 
 
 def points_bytes(points: np.ndarray) -> bytes:

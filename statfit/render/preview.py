@@ -1,5 +1,7 @@
 """Preview image of an inverse-rendering fit: target normals | fitted normals | angular error
-(with a colour bar) | the fitted mesh turned 70° | the fitted mesh from behind (what the map never saw)."""
+(with a colour bar) | the fitted mesh turned 70° | the fitted mesh from behind (what the map never saw).
+The last two show the mesh's normals, or a per-vertex field (``data_distance``, ``off_span``,
+``observed``: where the fit guessed) in colour with its bar."""
 from __future__ import annotations
 
 import io
@@ -10,11 +12,14 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (the backend must be chosen first)
 import numpy as np  # noqa: E402
 
-from statfit.renderer import Camera  # noqa: E402
+import torch  # noqa: E402
+
+from statfit.renderer import Camera, interpolate, rasterize  # noqa: E402
 from statfit.renderer.images import render_target  # noqa: E402
 
 SIDE_VIEW_DEG = 70.0
 BACK_VIEW_DEG = 180.0
+PREVIEW_COLOURS = ("normals", "data_distance", "off_span", "observed")
 
 
 def normals_to_rgb(normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -43,9 +48,28 @@ def side_camera(camera: Camera, vertices: np.ndarray, degrees: float = SIDE_VIEW
     return Camera(camera.width, camera.height, camera.K, pose)
 
 
+def field_image(vertices: np.ndarray, faces: np.ndarray, camera: Camera, values: np.ndarray) -> np.ndarray:
+    """Per-vertex ``values`` (N,) interpolated over the mesh as ``camera`` sees it, (H, W), NaN
+    on the background."""
+    points, face_ids = torch.as_tensor(vertices, dtype=torch.float64), torch.as_tensor(faces, dtype=torch.long)
+    fragments = rasterize(points, face_ids, camera)
+    image = interpolate(torch.as_tensor(values, dtype=torch.float64)[:, None], face_ids, fragments)[..., 0]
+    return np.where((fragments.triangle >= 0).numpy(), image.numpy(), np.nan)
+
+
 def preview_png(target: np.ndarray, target_mask: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
-                camera: Camera) -> bytes:
-    """The preview as PNG bytes. target: camera-space (OpenCV) normals (H, W, 3) and mask (H, W)."""
+                camera: Camera, colour: tuple[str, np.ndarray] | None = None) -> bytes:
+    """The preview as PNG bytes. target: camera-space (OpenCV) normals (H, W, 3) and mask (H, W).
+    ``colour``: (name, per-vertex values (N,)) to colour the two other views by, instead of normals."""
+    if colour is not None:
+        return _coloured(preview_figure(target, target_mask, vertices, faces, camera), vertices, faces, camera,
+                         *colour)
+    return _png(preview_figure(target, target_mask, vertices, faces, camera))
+
+
+def preview_figure(target: np.ndarray, target_mask: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                   camera: Camera):
+    """The preview's matplotlib figure (five panels)."""
     fitted, covered = render_target(vertices, faces, camera, space="camera")
     both = covered & target_mask
     error = np.where(both, angular_error(fitted, target), np.nan)
@@ -67,6 +91,25 @@ def preview_png(target: np.ndarray, target_mask: np.ndarray, vertices: np.ndarra
     axes[4].set_title("fitted mesh, from behind")
     for axis in axes:
         axis.set_axis_off()
+    return figure
+
+
+def _coloured(figure, vertices: np.ndarray, faces: np.ndarray, camera: Camera, name: str, values: np.ndarray) -> bytes:
+    """The figure's two other views redrawn coloured by the per-vertex ``values`` (N,)."""
+    values = np.asarray(values, dtype=np.float64)
+    finite = values[np.isfinite(values)]
+    top = max(float(np.percentile(finite, 99)) if finite.size else 1.0, 1e-12)
+    for axis, degrees, label in ((figure.axes[3], SIDE_VIEW_DEG, f"view turned {SIDE_VIEW_DEG:.0f}°"),
+                                 (figure.axes[4], BACK_VIEW_DEG, "from behind")):
+        axis.images[0].remove()
+        shown = axis.imshow(field_image(vertices, faces, side_camera(camera, vertices, degrees), values),
+                            cmap="viridis", vmin=0.0, vmax=top)
+        axis.set_title(f"{name}, {label}")
+    figure.colorbar(shown, ax=figure.axes[4], fraction=0.046, pad=0.02, label=name)
+    return _png(figure)
+
+
+def _png(figure) -> bytes:
     buffer = io.BytesIO()
     figure.savefig(buffer, format="png", dpi=80)
     plt.close(figure)
