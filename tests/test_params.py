@@ -246,3 +246,15 @@ def test_batch_writes_params_beside_each_mesh(tmp_path, capsys):
         off_span = read_vertex_fields(out / f"s{seed}.ply")["off_span"]
         np.testing.assert_allclose(np.linalg.norm(fitted - posed_shape(model, projection), axis=1), off_span,
                                    atol=2e-6)
+
+
+def test_splat_params_and_fields(tmp_path, capsys):
+    views, fit, params = tmp_path / "views", tmp_path / "fit.ply", tmp_path / "fit.params.json"
+    assert run(["synth", "views", "--views", "3", "--size", "32", "--out", str(views)], capsys)[0] == 0
+    code, _, err = run(["splat", str(views), "--iterations", "4", "-q", "--out", str(fit), "--params", str(params)],
+                       capsys)
+    assert code == 0, err
+    record = json.loads(params.read_text())
+    assert record["similarity"]["scale"] == 1.0 and record["similarity"]["translation"] == [0.0, 0.0, 0.0]
+    fields = read_vertex_fields(fit)
+    assert 0 < fields["observed"].sum() and np.isfinite(fields["data_distance"]).all()
