@@ -64,6 +64,7 @@ class StatisticalFilter:
     def __init__(self, basis_t: torch.Tensor, beta: float, power: float = 1.0,
                  mode_gain: torch.Tensor | None = None):
         self.basis_t = basis_t.contiguous()
+        self._basis = self.basis_t.t()
         self.beta = beta_with_power(beta, power)
         self.off_gain = 1.0 / (1.0 + self.beta)
         gain = torch.ones(basis_t.shape[0], dtype=basis_t.dtype, device=basis_t.device) \
@@ -73,7 +74,7 @@ class StatisticalFilter:
     def __call__(self, g: torch.Tensor) -> torch.Tensor:
         flat = g.reshape(-1)
         coeff = project(self.basis_t, flat).mul_(self._gain_minus_off)
-        return expand(self.basis_t, coeff, flat, self.off_gain).view_as(g)
+        return expand(self.basis_t, coeff, flat, self.off_gain, self._basis).view_as(g)
 
 
 class HybridFilter:
@@ -82,6 +83,7 @@ class HybridFilter:
     def __init__(self, basis_t: torch.Tensor, beta: float, laplacian_filter: LaplacianFilter,
                  power: float = 1.0, mode_gain: torch.Tensor | None = None):
         self.basis_t = basis_t.contiguous()
+        self._basis = self.basis_t.t()
         self.beta = beta_with_power(beta, power)
         alpha = self.beta / (1.0 + self.beta)
         self.off_gain = 1.0 - alpha
@@ -93,4 +95,4 @@ class HybridFilter:
         flat = g.reshape(-1)
         coeff = project(self.basis_t, flat).mul_(self._gain)
         smooth = self._smooth(g).reshape(-1)
-        return expand(self.basis_t, coeff, smooth, self.off_gain).view_as(g)
+        return expand(self.basis_t, coeff, smooth, self.off_gain, self._basis).view_as(g)

@@ -1,7 +1,9 @@
 """The one fitting loop shared by every job and method."""
 from __future__ import annotations
 
+import functools
 import math
+import operator
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
@@ -16,7 +18,12 @@ class Objective(Protocol):
     """A data term: ``prepare`` does non-differentiable work (correspondences, visibility), ``reset``
     drops what ``prepare`` keeps (a new stage starts afresh), ``__call__`` returns named loss terms
     (scalars) differentiable w.r.t. ``vertices``. An objective with parameters of its own (the
-    splats' colours) has an ``optimizer`` attribute; the loop steps it with the vertices'."""
+    splats' colours) has an ``optimizer`` attribute; the loop steps it with the vertices'.
+
+    ``deferred_checks = True`` (optional attribute) says the objective survives non-finite vertices
+    until the next record step (its ``prepare`` raises DivergenceError where it cannot): the loop
+    then checks for divergence at record steps only, with the loss values in one host read, and no
+    other iteration waits for the device. Without it the vertices are checked every iteration."""
 
     def prepare(self, vertices: torch.Tensor, iteration: int) -> None: ...
 
@@ -99,29 +106,37 @@ def _loop(param: Parametrization, optimizer: torch.optim.Optimizer, objective: O
     start = time.perf_counter()
     terms: dict[str, float] = {}
     optimizers = [optimizer, *filter(None, [getattr(objective, "optimizer", None)])]
+    # An objective that survives non-finite vertices between records (ScanObjective) lets the loop
+    # check for divergence at its record steps only: no host wait in the other iterations.
+    deferred = bool(getattr(objective, "deferred_checks", False))
+    pending: list[torch.Tensor] = []    # the total loss of every iteration since the last record
     for step in range(iterations):
         it = first_iteration + step
         with timer("filter"):
             x = param.vertices()
-        if not bool(torch.isfinite(x.detach()).all()):
+        if not deferred and not bool(torch.isfinite(x.detach()).all()):
             raise DivergenceError(f"the fit diverged at iteration {it}: vertices are not finite (step size too large?)")
         with timer("correspondences"):
-            objective.prepare(x.detach(), it)
+            try:
+                objective.prepare(x.detach(), it)
+            except DivergenceError:
+                _check_pending(pending, it - len(pending))
+                raise DivergenceError(f"the fit diverged at iteration {it}: vertices are not finite "
+                                      "(step size too large?)") from None
         with timer("loss"):
             losses = objective(x) | param.prior(x)
-            loss = sum(losses.values())
+            loss = functools.reduce(operator.add, losses.values())
         with timer("backward"):
             for each in optimizers:
-                each.zero_grad(set_to_none=True)
+                _clear_grads(each)
             loss.backward()
         with timer("step"):
             for each in optimizers:
                 each.step()
+        pending.append(loss)
         if step % record_every == 0 or step == iterations - 1:
-            terms = {k: float(v.detach()) for k, v in losses.items()}
-            terms["total"] = sum(terms.values())
-            if not math.isfinite(terms["total"]):
-                raise DivergenceError(f"the fit diverged at iteration {it}: the loss is {terms['total']}")
+            terms = _record_terms(losses, pending, x, it, deferred)
+            pending = []
             if on_record:
                 on_record(it, terms)
             if on_snapshot:
@@ -132,3 +147,54 @@ def _loop(param: Parametrization, optimizer: torch.optim.Optimizer, objective: O
         raise DivergenceError(f"the fit diverged at iteration {first_iteration + iterations - 1}: "
                               "vertices are not finite (step size too large?)")
     return FitResult(final, terms, iterations, time.perf_counter() - start)
+
+
+def host_values(values: torch.Tensor) -> list:
+    """``values`` on the host as a list: the one read (a wait for the device) of a record step."""
+    return values.tolist()
+
+
+def _clear_grads(optimizer: torch.optim.Optimizer) -> None:
+    """``optimizer.zero_grad(set_to_none=True)``, without the profiler's record ops of the base method."""
+    if type(optimizer).zero_grad is not torch.optim.Optimizer.zero_grad:
+        optimizer.zero_grad(set_to_none=True)
+        return
+    for group in optimizer.param_groups:
+        for p in group["params"]:
+            p.grad = None
+
+
+def _record_terms(losses: dict[str, torch.Tensor], pending: list[torch.Tensor], x: torch.Tensor, it: int,
+                  deferred: bool) -> dict[str, float]:
+    """The loss terms of iteration ``it`` as floats, read with the totals of the iterations since
+    the last record (and, for a deferred check, whether ``x`` is finite) in one host read; raises
+    DivergenceError naming the first iteration whose loss (or vertices) stopped being finite."""
+    with torch.no_grad():
+        parts = [torch.stack([v.reshape(()) for v in losses.values()] + pending)]
+        if deferred:
+            parts.append(torch.isfinite(x).all().reshape(1))
+        values = host_values(torch.cat(parts) if deferred else parts[0])
+    terms = dict(zip(losses, values))
+    totals = values[len(losses):len(losses) + len(pending)]
+    if deferred and not values[-1]:
+        first = next((i for i, total in enumerate(totals) if not math.isfinite(total)), len(totals) - 1)
+        raise DivergenceError(f"the fit diverged at iteration {it - len(totals) + 1 + first}: vertices are not finite "
+                              "(step size too large?)")
+    for i, total in enumerate(totals):
+        if not math.isfinite(total):
+            raise DivergenceError(f"the fit diverged at iteration {it - len(totals) + 1 + i}: the loss is {total}")
+    terms["total"] = sum(terms.values())
+    if not math.isfinite(terms["total"]):
+        raise DivergenceError(f"the fit diverged at iteration {it}: the loss is {terms['total']}")
+    return terms
+
+
+def _check_pending(pending: list[torch.Tensor], first: int) -> None:
+    """Raise DivergenceError naming the first of the ``pending`` losses (of iterations ``first``, …)
+    that is not finite, if one is."""
+    if pending:
+        with torch.no_grad():
+            totals = host_values(torch.stack(pending).detach())
+        for i, total in enumerate(totals):
+            if not math.isfinite(total):
+                raise DivergenceError(f"the fit diverged at iteration {first + i}: the loss is {total}")

@@ -37,15 +37,16 @@ def project(basis_t: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
 
 
 def expand(basis_t: torch.Tensor, coeff: torch.Tensor, base: torch.Tensor | None = None,
-           base_weight: float = 1.0) -> torch.Tensor:
+           base_weight: float = 1.0, basis: torch.Tensor | None = None) -> torch.Tensor:
     """U coeff, plus ``base_weight`` · base if given: (3N,) for ``basis_t`` (K, 3N), ``coeff`` (K,),
-    ``base`` (3N,)."""
+    ``base`` (3N,); ``basis``: ``basis_t.t()`` if the caller keeps that view (one op less per call)."""
     blocks, width, head = _blocks(basis_t)
     k, columns = basis_t.shape
     if blocks == 1:
+        basis = basis_t.t() if basis is None else basis
         if base is None:
-            return torch.mv(basis_t.t(), coeff)
-        return torch.addmv(base, basis_t.t(), coeff, beta=base_weight)
+            return torch.mv(basis, coeff)
+        return torch.addmv(base, basis, coeff, beta=base_weight)
     out = torch.empty(columns, dtype=basis_t.dtype, device=basis_t.device)
     block_rows = basis_t[:, :head].view(k, blocks, width).transpose(0, 1)           # (B, K, width)
     block_coeff = coeff.view(1, 1, k).expand(blocks, 1, k)

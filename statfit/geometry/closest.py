@@ -14,6 +14,8 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from statfit.errors import DivergenceError
+
 
 @dataclass(frozen=True)
 class SurfacePoints:
@@ -59,30 +61,34 @@ def _closest_in_triangle(d20: torch.Tensor, d21: torch.Tensor, dpp: torch.Tensor
     """:func:`closest_on_triangles` from the dot products (...) ap·ab, ap·ac, ap·ap of the point's
     offset ap to corner a with the edges ab, ac, and ab·ab, ab·ac, ac·ac, which depend on the
     triangle only (so a query computes them once per triangle, not once per candidate)."""
+    v, w, sq = _closest_in_triangle_vw(d20, d21, dpp, d00, d01, d11)
+    return torch.stack([1 - v - w, v, w], dim=-1), sq
+
+
+def _closest_in_triangle_vw(d20: torch.Tensor, d21: torch.Tensor, dpp: torch.Tensor, d00: torch.Tensor,
+                            d01: torch.Tensor, d11: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`_closest_in_triangle` as (v, w, squared distance), the closest point ``a + v·ab + w·ac``.
+
+    The four candidates (the projection if inside, the closest points of edges AB, AC, BC) are
+    evaluated as one stack and the first nearest wins: the same values as trying them in turn, in a
+    few large torch ops instead of four rounds of small ones (each op a kernel launch on a GPU)."""
     tiny = torch.finfo(d20.dtype).tiny
-
-    def sq_dist(v: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-        return dpp - 2 * (v * d20 + w * d21) + v * v * d00 + 2 * v * w * d01 + w * w * d11
-
     denom = (d00 * d11 - d01 * d01).clamp_min(tiny)
     v = (d11 * d20 - d01 * d21) / denom
     w = (d00 * d21 - d01 * d20) / denom
-    inside = (v >= 0) & (w >= 0) & (v + w <= 1)
-    best = torch.where(inside, sq_dist(v, w), torch.inf)
-    edges = (  # (v, w) on AB, AC and BC
-        lambda t: (t, torch.zeros_like(t)),
-        lambda t: (torch.zeros_like(t), t),
-        lambda t: (1 - t, t),
-    )
-    params = (d20 / d00.clamp_min(tiny), d21 / d11.clamp_min(tiny),
-              (d21 - d20 - d01 + d00) / (d11 - 2 * d01 + d00).clamp_min(tiny))
-    for to_vw, t in zip(edges, params):
-        ev, ew = to_vw(t.clamp(0, 1))
-        dist = sq_dist(ev, ew)
-        better = dist < best
-        v, w = torch.where(better, ev, v), torch.where(better, ew, w)
-        best = torch.where(better, dist, best)
-    return torch.stack([1 - v - w, v, w], dim=-1), best.clamp_min(0)
+    outside = (v < 0) | (w < 0) | (v + w > 1)
+    t = torch.stack([d20 / d00.clamp_min(tiny), d21 / d11.clamp_min(tiny),
+                     (d21 - d20 - d01 + d00) / (d11 - 2 * d01 + d00).clamp_min(tiny)]).clamp_(0, 1)
+    t_ab, t_ac, t_bc = t.unbind(0)
+    zero = torch.zeros_like(v)
+    vs = torch.stack([v, t_ab, zero, 1 - t_bc])        # (v, w) inside, then on AB, AC and BC
+    ws = torch.stack([w, zero, t_ac, t_bc])
+    sq = dpp - 2 * (vs * d20 + ws * d21) + vs * vs * d00 + 2 * vs * ws * d01 + ws * ws * d11   # (4, ...)
+    sq[0].masked_fill_(outside, torch.inf)
+    sq.nan_to_num_(nan=torch.inf, posinf=torch.inf)
+    best = sq.argmin(dim=0, keepdim=True)                # the first nearest, as trying them in turn
+    v, w, sq = torch.stack([vs, ws, sq]).gather(1, best[None].expand(3, -1, *best.shape[1:]))[:, 0].unbind(0)
+    return v, w, sq.clamp_min(0)
 
 
 def open_edges(faces: torch.Tensor) -> torch.Tensor:
@@ -103,28 +109,43 @@ class ClosestPointQuery:
         self.faces = torch.as_tensor(np.asarray(faces, dtype=np.int64), device=device)
         self.open_edges = open_edges(self.faces)
         self._ring = torch.as_tensor(vertex_triangle_table(faces, num_vertices), device=device)
+        self._faces_flat = self.faces.reshape(-1)
+        # edge pairs whose dot products a triangle's test needs: ab·ab, ab·ac, ac·ac
+        self._left = torch.tensor([0, 0, 1], device=device)
+        self._right = torch.tensor([0, 1, 1], device=device)
 
-    def __call__(self, vertices: torch.Tensor, points: torch.Tensor) -> SurfacePoints:
-        """Closest points on the surface with ``vertices`` (N, 3) to ``points`` (M, 3)."""
+    def __call__(self, vertices: torch.Tensor, points: torch.Tensor, host_points: np.ndarray | None = None
+                 ) -> SurfacePoints:
+        """Closest points on the surface with ``vertices`` (N, 3) to ``points`` (M, 3);
+        ``host_points``: the points as a float64 NumPy array, if the caller keeps one (a scan
+        queried again and again: no copy each time). Raises DivergenceError for non-finite vertices."""
         with torch.no_grad():
-            tree = cKDTree(vertices.detach().cpu().double().numpy(), balanced_tree=False)   # built per query: 1.7x faster to build
-            _, nearest = tree.query(points.detach().cpu().double().numpy(), k=self.k)
-            nearest = torch.as_tensor(nearest.reshape(len(points), -1), device=points.device)
-            candidates = self._ring[nearest].reshape(len(points), -1)      # (M, C)
-            a, b, c = vertices[self.faces].unbind(dim=1)                   # (F, 3) each
-            ab, ac = b - a, c - a
+            vertices = vertices.detach() if vertices.requires_grad else vertices
+            host = vertices.cpu().double().numpy()
+            if not np.isfinite(host).all():
+                raise DivergenceError("the fit diverged: vertices are not finite (step size too large?)")
+            tree = cKDTree(host, balanced_tree=False)   # built per query: 1.7x faster to build
+            if host_points is None:
+                host_points = (points.detach() if points.requires_grad else points).cpu().double().numpy()
+            _, nearest = tree.query(host_points, k=self.k)
+            count = len(points)
+            nearest = torch.as_tensor(nearest.reshape(count, -1), device=points.device)
+            candidates = self._ring[nearest].view(count, -1)               # (M, C)
+            corners = vertices.index_select(0, self._faces_flat).view(-1, 3, 3)      # (F, corner, xyz)
+            edges = corners[:, 1:] - corners[:, :1]                                   # (F, 2, 3): ab, ac
+            products = (edges[:, self._left] * edges[:, self._right]).sum(-1)        # (F, 3): ab·ab, ab·ac, ac·ac
             # one plane per quantity (12, F), so that every product below runs over contiguous memory
-            per_triangle = torch.cat([a.T, ab.T, ac.T, (ab * ab).sum(-1)[None], (ab * ac).sum(-1)[None],
-                                      (ac * ac).sum(-1)[None]])
-            gathered = per_triangle.index_select(1, candidates.reshape(-1)).view(12, *candidates.shape)   # (12, M, C)
-            corner, edge_b, edge_c = gathered[0:3], gathered[3:6], gathered[6:9]                     # (3, M, C)
-            offset = points.T[:, :, None] - corner
-            dot = lambda x, y: x[0] * y[0] + x[1] * y[1] + x[2] * y[2]  # noqa: E731
-            bary, sq = _closest_in_triangle(dot(offset, edge_b), dot(offset, edge_c), dot(offset, offset),
-                                            *gathered[9:12])
-            best = sq.argmin(dim=1)
-            rows = torch.arange(len(points), device=points.device)
-            triangle, bary = candidates[rows, best], bary[rows, best]
-            surface = (corner[:, rows, best] + bary[:, 1] * edge_b[:, rows, best]
-                       + bary[:, 2] * edge_c[:, rows, best]).T
+            per_triangle = torch.cat([corners[:, 0], edges.view(-1, 6), products], dim=1).T.contiguous()
+            gathered = per_triangle.index_select(1, candidates.view(-1)).view(12, *candidates.shape)   # (12, M, C)
+            offset = points.T[:, :, None] - gathered[0:3]                            # (3, M, C)
+            # ap·ab, ap·ac, ap·ap at once: (edge b, edge c, offset) · offset, summed over xyz in order
+            dots = (torch.cat([gathered[3:9].view(2, 3, *candidates.shape), offset[None]]) * offset).sum(1)
+            v, w, sq = _closest_in_triangle_vw(*dots, *gathered[9:12])
+            best = sq.argmin(dim=1, keepdim=True)                                    # (M, 1)
+            triangle = candidates.gather(1, best)[:, 0]
+            # the winner's corner and edges (9 planes) and its (v, w), in one gather: (11, M)
+            picked = torch.cat([gathered[:9], v[None], w[None]]).gather(2, best[None].expand(11, -1, -1))[..., 0]
+            corner, edge_b, edge_c, (v, w) = picked[0:3], picked[3:6], picked[6:9], picked[9:11]
+            bary = torch.stack([1 - v - w, v, w], dim=-1)
+            surface = (corner + v * edge_b + w * edge_c).T
             return SurfacePoints(triangle, bary, (surface - points).norm(dim=-1))

@@ -33,10 +33,58 @@ NORMAL_COSINE = 0.5
 ON_EDGE = 1e-6
 
 
+def masked_quantile(values: torch.Tensor, mask: torch.Tensor, q: float) -> torch.Tensor:
+    """``torch.quantile(values[mask], q)`` (linear interpolation) bit for bit, as a (1,) tensor, without
+    compacting: static shapes, no host wait (NaN when no value is masked in)."""
+    ordered = values.masked_fill(~mask, torch.inf).sort().values        # the masked-out last
+    ranks = torch.tensor(q, dtype=values.dtype, device=values.device) * (mask.sum() - 1)   # > −1: truncates to ≥ 0
+    low = ranks.long()
+    below, above = ordered.gather(0, torch.stack([low, ranks.ceil().long()])).unbind(0)
+    return below.lerp(above, ranks - low)
+
+
+def masked_median(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """``values[mask].median()`` (the lower of the two middle values) as a (1,) tensor, without
+    compacting (+inf when no value is masked in)."""
+    ordered = values.masked_fill(~mask, torch.inf).sort().values
+    return ordered.gather(0, (mask.sum() - 1).div(2, rounding_mode="floor").clamp_min_(0).view(1))
+
+
+class _PointToSurface(torch.autograd.Function):
+    """The data term Σᵢ wᵢ ‖pᵢ − Σ_c b_ic x_{t_ic}‖² (wᵢ = 1/M' for the M' points kept, else 0) with
+    its gradient written out: the same values as autograd's for the mean over the kept points, in a
+    few whole-scan ops (static shapes: no boolean compaction, so no host wait on a GPU)."""
+
+    @staticmethod
+    def forward(ctx, vertices: torch.Tensor, objective: "ScanObjective") -> torch.Tensor:
+        corners = vertices[objective._corner_rows]                                    # (M, 3, 3)
+        attached = (corners * objective._bary_columns).sum(dim=1, keepdim=True)     # (M, 1, 3)
+        residual = objective._points_rows - attached                                 # (M, 1, 3)
+        ctx.residual, ctx.state = residual, objective._gradient_state()
+        return (residual.square() * objective._mean_weights).sum()
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        corner_ids, neg_bary, grad_weights, zeros = ctx.state
+        # 2 rᵢ / M' (the mean's and the square's factors, one rounding as autograd's), then −b_ic per corner
+        scaled = ctx.residual * (grad_weights * grad)                                # (M, 1, 3)
+        per_corner = (scaled * neg_bary).view(-1, 3)                                 # (3M, 3)
+        return torch.index_add(zeros, 0, corner_ids, per_corner), None
+
+
 class ScanObjective:
     """Mean squared point-to-surface distance of a scan (M, 3) to the mesh, in the fit frame;
     ``normals`` (M, 3) the scan's unit normals (any sign), if known; ``clutter`` turns on the rules
-    for points that are not on the template (module docstring)."""
+    for points that are not on the template (module docstring).
+
+    A refresh decides which points count as a mask (no compaction), and the data term weighs them
+    by it: every tensor keeps its shape from one refresh to the next, and neither the refresh nor an
+    iteration waits for the device. The loss's gradient is bit for bit autograd's mean over the kept
+    points; its value sums in another order (the last bits may differ)."""
+
+    # The fitting loop may check for divergence at its record steps only: a refresh refuses
+    # non-finite vertices itself (DivergenceError), and nothing else is hurt by them.
+    deferred_checks = True
 
     def __init__(self, points: torch.Tensor, query: ClosestPointQuery, refresh_every: int = 10,
                  trim: float = 0.05, region_faces: torch.Tensor | None = None,
@@ -52,29 +100,54 @@ class ScanObjective:
         self.attachment: SurfacePoints | None = None
         self._keep: torch.Tensor | None = None
         self._corner_ids: torch.Tensor | None = None
+        self._refreshed_at: torch.Tensor | None = None
+        self._zeros: torch.Tensor | None = None      # (N, 3), where the gradient is summed into
         self._normals: torch.Tensor | None = None
+        self._points_rows = points.view(-1, 1, 3)
+        self._host_points = points.detach().cpu().double().numpy()
 
     def refresh(self, vertices: torch.Tensor) -> SurfacePoints:
         """Re-attach every scan point to its closest surface point."""
-        self.attachment = self.query(vertices.detach(), self.points)
-        self._corner_ids = self.faces[self.attachment.triangle].reshape(-1)
-        dist = self.attachment.distance
-        self._keep = torch.ones_like(dist, dtype=torch.bool)
+        vertices = vertices.detach() if vertices.requires_grad else vertices
+        self.attachment = self.query(vertices, self.points, self._host_points)
+        triangle, bary, dist = self.attachment.triangle, self.attachment.barycentric, self.attachment.distance
+        self._corner_rows = self.faces.index_select(0, triangle)                     # (M, 3)
+        self._corner_ids = self._corner_rows.view(-1)
+        if self._zeros is None or self._zeros.shape != vertices.shape or self._zeros.dtype != vertices.dtype:
+            self._zeros = vertices.new_zeros(vertices.shape)
+        self._refreshed_at, self._normals = vertices, None
+        on_border = (self.query.open_edges.index_select(0, triangle) & (bary < ON_EDGE)).any(dim=1)
+        keep = ~on_border
         if self.region_faces is not None:
-            self._keep = self.region_faces[self.attachment.triangle]
-        a, b, c = vertices.detach().index_select(0, self._corner_ids).view(-1, 3, 3).unbind(dim=1)
-        normals = torch.nn.functional.normalize(torch.linalg.cross(b - a, c - a), dim=-1)   # (M, 3)
-        on_border = self.query.open_edges[self.attachment.triangle] & (self.attachment.barycentric < ON_EDGE)
-        self._keep &= ~on_border.any(dim=1)
+            keep &= self.region_faces.index_select(0, triangle)
         if self.clutter:
             if self.scan_normals is not None:
-                self._keep &= (normals * self.scan_normals).sum(dim=-1).abs() >= NORMAL_COSINE
-            if self._keep.any():
-                self._keep &= dist <= max(OUTLIER_SIGMAS * 1.4826 * float(dist[self._keep].median()), FLOOR)
-        if self.trim > 0 and self._keep.any():
-            self._keep &= dist <= torch.quantile(dist[self._keep], 1.0 - self.trim)
-        self._normals = normals[self._keep]                                                  # (M', 3)
+                keep &= (self.normals * self.scan_normals).sum(dim=-1).abs() >= NORMAL_COSINE
+            median = masked_median(dist, keep).double()
+            keep &= dist <= (OUTLIER_SIGMAS * 1.4826 * median).clamp_min(FLOOR)
+        if self.trim > 0:
+            keep &= dist <= masked_quantile(dist, keep, 1.0 - self.trim)
+        self._keep = keep
+        # the data term's weights: 1/M' per kept point for the value, 2/M' for the gradient
+        # (M' = 0: NaN, as the mean of nothing)
+        share = keep.sum().to(dist.dtype).reciprocal()
+        weights = keep.to(dist.dtype)
+        self._mean_weights = (weights * share).view(-1, 1, 1)
+        self._grad_weights = (weights * (2 * share)).view(-1, 1, 1)
+        self._bary_columns = bary[:, :, None]
+        self._neg_bary = bary.neg()[:, :, None]
         return self.attachment
+
+    @property
+    def normals(self) -> torch.Tensor:
+        """(M, 3) unit normals of the triangles the points are attached to, at the last refresh."""
+        if self._normals is None:
+            a, b, c = self._refreshed_at.index_select(0, self._corner_ids).view(-1, 3, 3).unbind(dim=1)
+            self._normals = torch.nn.functional.normalize(torch.linalg.cross(b - a, c - a), dim=-1)
+        return self._normals
+
+    def _gradient_state(self) -> tuple[torch.Tensor, ...]:
+        return self._corner_ids, self._neg_bary, self._grad_weights, self._zeros
 
     @property
     def kept(self) -> int:
@@ -96,6 +169,9 @@ class ScanObjective:
         return (corners * self.attachment.barycentric[..., None]).sum(dim=-2)
 
     def __call__(self, vertices: torch.Tensor) -> dict[str, torch.Tensor]:
+        if vertices.requires_grad and torch.is_grad_enabled():
+            return {"data": _PointToSurface.apply(vertices, self)}
+        # a value only (Gauss–Newton's convergence test): the mean over the kept points, as ever
         residual = (self.points - self._attached(vertices))[self._keep]
         return {"data": residual.square().sum(dim=1).mean()}
 
@@ -105,7 +181,7 @@ class ScanObjective:
         The first-order model of the point-to-surface distance, for Gauss–Newton: unlike
         point-to-point residuals it lets the surface slide, so alternation converges in a few steps."""
         offset = (self.points - self._attached(vertices))[self._keep]
-        return (offset * self._normals).sum(dim=-1)
+        return (offset * self.normals[self._keep]).sum(dim=-1)
 
     def jacobian(self, directions: torch.Tensor) -> torch.Tensor:
         """∂residuals/∂c (M', K) for vertices moving along K ``directions`` stored vertex-major,
@@ -113,12 +189,13 @@ class ScanObjective:
         ids = self._corner_ids.view(-1, 3)[self._keep].reshape(-1)
         rows = directions.index_select(0, ids).view(-1, 9, directions.shape[-1])       # (M', 3 corners × xyz, K)
         # residual i moves by −Σ_corners b_c n·Δx_c: one weight per (corner, axis), b_c n_axis
-        weights = self.attachment.barycentric[self._keep][:, :, None] * self._normals[:, None, :]
+        weights = self.attachment.barycentric[self._keep][:, :, None] * self.normals[self._keep][:, None, :]
         return -torch.bmm(weights.reshape(-1, 1, 9), rows).squeeze(1)
 
     def pose_jacobian(self, centre: torch.Tensor) -> torch.Tensor:
         """∂residuals/∂(ω, t, σ) (M', 7) for the kept scan points moved by a small similarity about
         ``centre`` (3,): p ↦ p + ω × (p − centre) + t + σ (p − centre), the surface held."""
         offset = self.points[self._keep] - centre
-        return torch.cat([torch.linalg.cross(offset, self._normals), self._normals,
-                          (offset * self._normals).sum(dim=-1, keepdim=True)], dim=-1)
+        normals = self.normals[self._keep]
+        return torch.cat([torch.linalg.cross(offset, normals), normals,
+                          (offset * normals).sum(dim=-1, keepdim=True)], dim=-1)
