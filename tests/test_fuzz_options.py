@@ -14,6 +14,7 @@ import typer
 from statfit.io.image import write_image
 from conftest import run_cli
 from statfit_cli.main import app
+from statfit.model.statmodel import default_model_path
 
 FLOATS = ["nan", "inf", "-1", "1e30", "x"]
 INTS = ["-1", "999999999999999999999", "x", "2.5"]
@@ -55,6 +56,7 @@ def base_argv(command: tuple[str, ...], inputs: Path, out: Path) -> list[str]:
         ("model", "build"): ["model", "build", *(str(i / f"s{k}.ply") for k in range(3)), "-o", str(o / "b.npz")],
         ("model", "sample"): ["model", "sample", "-o", str(o / "s.ply")],
         ("model", "info"): ["model", "info"],
+        ("model", "cut"): ["model", "cut", str(default_model_path()), "--vertices", "2000", "-o", str(o / "c.npz")],
         ("batch", "register"): ["batch", "register", str(i / "scan.ply"), "--iterations", "2", "-q", "--workers", "1",
                                 "--out-dir", str(o / "fits")],
         ("batch", "render"): ["batch", "render", str(i / "n.exr"), "--camera", str(i / "cam.json"), "--iterations", "2",

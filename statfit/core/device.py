@@ -9,6 +9,8 @@ from statfit.errors import StatfitError
 
 # Names the default device: ``STATFIT_DEVICE=cuda pytest`` runs the whole suite's fits on the GPU.
 DEVICE_ENV = "STATFIT_DEVICE"
+# "0" lets CUDA reduce in any order (atomics): faster, but the same seed no longer gives the same bytes.
+DETERMINISTIC_ENV = "STATFIT_DETERMINISTIC"
 
 
 def resolve_device(device: str | torch.device | None = None) -> torch.device:
@@ -20,4 +22,16 @@ def resolve_device(device: str | torch.device | None = None) -> torch.device:
         raise StatfitError(f"unknown device {device!r}; choose auto, cpu or cuda")
     if device.startswith("cuda") and not torch.cuda.is_available():
         raise StatfitError("--device cuda was asked for but no CUDA device is available")
+    if device.startswith("cuda"):
+        same_seed_same_bytes()
     return torch.device(device)
+
+
+def same_seed_same_bytes() -> None:
+    """Make CUDA's reductions deterministic (torch's deterministic algorithms, cuBLAS's fixed
+    workspace), so a seed gives the same bytes on every run, as on the CPU; an op with no
+    deterministic CUDA kernel warns instead of failing. ``STATFIT_DETERMINISTIC=0`` opts out."""
+    if os.environ.get(DETERMINISTIC_ENV, "1") == "0":
+        return
+    os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+    torch.use_deterministic_algorithms(True, warn_only=True)

@@ -1,0 +1,177 @@
+"""The GPU benchmark (issue 38, part 7): one command, a few minutes on one GPU.
+
+    python benchmarks/gpu.py [--device cuda] [--quick] [--out FILE.json]
+
+Prints a markdown table: the filter step at 2^20 vertices (k = 100); ``register`` (ICT jaw-open,
+4,300 points) and ``render`` (ICT jaw-open, 512²) at the default and at the paper's settings —
+seconds per fit; ms per iteration, from two runs of every stage cut to 50 and to 250 iterations (the
+difference over the iterations between); the set-up (the 50-iteration run less its iterations:
+pose search, factorisations, model to the device); torch ops and host waits per iteration of each
+job's loop (counted with a dispatch mode, as ``../shared/tools/sync_count.py`` counts them); and
+fits per second over a run of scans, one after another. A warm-up fit runs first (CUDA's start). With
+``--device cpu`` the same numbers on one CPU thread, for the ratio measured on the same machine.
+The ICT data must be at ../shared/data/ict-face.
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils._python_dispatch import TorchDispatchMode
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+WAITING = ("_local_scalar_dense", "nonzero", "masked_select", "_unique", "unique_consecutive", "unique_dim",
+           "repeat_interleave", "equal", "is_nonzero", "masked_scatter")
+
+
+class OpCounter(TorchDispatchMode):
+    """Counts every torch op dispatched inside the block, by name."""
+
+    def __init__(self):
+        super().__init__()
+        self.ops: collections.Counter = collections.Counter()
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.ops[func.__name__] += 1
+        return func(*args, **(kwargs or {}))
+
+
+def per_iteration(run) -> tuple[float, float]:
+    """(ops, host waits) per iteration of ``run(iterations) -> iterations run``: 120 minus 20."""
+    short, long = OpCounter(), OpCounter()
+    with short:
+        done_short = run(20)
+    with long:
+        done_long = run(120)
+    n = done_long - done_short
+    ops = (sum(long.ops.values()) - sum(short.ops.values())) / n
+    waits = sum(long.ops[k] - short.ops.get(k, 0) for k in long.ops if any(w in k for w in WAITING)) / n
+    return ops, waits
+
+
+def synchronize(device: str) -> None:
+    if device == "cuda":
+        torch.cuda.synchronize()
+
+
+def filter_step_ms(device: str, vertices: int, k: int = 100, repeats: int = 20) -> float:
+    """One statistical filter step (two mat-vecs) on (3·vertices,) float32, median ms."""
+    from statfit.core.filters import StatisticalFilter
+
+    generator = torch.Generator(device=device).manual_seed(0)
+    basis_t = torch.linalg.qr(torch.randn(3 * vertices, k, device=device, generator=generator))[0].T.contiguous()
+    step = StatisticalFilter(basis_t, beta=1000.0)
+    gradient = torch.randn(vertices, 3, device=device, generator=generator)
+    step(gradient)
+    times = []
+    for _ in range(repeats):
+        synchronize(device)
+        start = time.perf_counter()
+        step(gradient)
+        synchronize(device)
+        times.append(1e3 * (time.perf_counter() - start))
+    return float(np.median(times))
+
+
+def timed(fit, device: str):
+    """One run of ``fit()``: (result, seconds)."""
+    synchronize(device)
+    start = time.perf_counter()
+    result = fit()
+    synchronize(device)
+    return result, time.perf_counter() - start
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--quick", action="store_true", help="small sizes: checks that it runs")
+    parser.add_argument("--out", type=Path, help="also write the numbers as JSON here")
+    args = parser.parse_args()
+    device = args.device
+    if device == "cpu":
+        torch.set_num_threads(1)
+    from cases import normal_case, scan_case
+    from common import ICT_MODEL
+    import statfit
+    from statfit.model.statmodel import default_model_path, load_model
+    from statfit.synth.sample import camera_for_view, sample_target, scan_from_view
+    from statfit.structures.normal_map import NormalMap
+    from statfit.renderer.images import render_target
+
+    rows: dict[str, object] = {"device": torch.cuda.get_device_name() if device == "cuda" else "cpu (1 thread)",
+                               "torch": torch.__version__}
+    rows["filter step 2^20 (ms)"] = filter_step_ms(device, 1 << (14 if args.quick else 20))
+
+    embedded = load_model(default_model_path())
+    rng = np.random.default_rng(3)
+    target = sample_target(embedded, rng)
+    points = scan_from_view(target, embedded.faces, rng, 4300, 20.0)
+    camera = camera_for_view(target, 20.0, 0.0, 256)
+    normal_map = NormalMap(*render_target(target, embedded.faces, camera))
+    rows["register ops/it"], rows["register waits/it"] = per_iteration(
+        lambda it: statfit.register(embedded, points, "statistical", preset="paper", align="none", device=device,
+                                    iterations=it).iterations)
+    rows["render ops/it"], rows["render waits/it"] = per_iteration(
+        lambda it: statfit.reconstruct(embedded, normal_map, camera, "statistical", preset="paper", align="none",
+                                       device=device, iterations=it).iterations)
+
+    ict = load_model(ICT_MODEL)
+    scan = scan_case("jaw-open")
+    normals = normal_case("jaw-open", 128 if args.quick else 512)
+    def register_with(method: str, preset: str, iterations: int | None):
+        extra = {} if iterations is None else {"iterations": iterations}
+        return lambda: statfit.register(ict, scan.points, method, preset=preset, device=device, **extra)
+
+    def render_with(method: str, preset: str, iterations: int | None):
+        extra = {} if iterations is None else {"iterations": iterations}
+        return lambda: statfit.reconstruct(ict, normals.normal_map, normals.camera, method, preset=preset,
+                                           device=device, **extra)
+
+    few, more = (10, 30) if args.quick else (50, 250)
+    jobs = {"register default": register_with, "register paper statistical": register_with,
+            "render default": render_with, "render paper statistical": render_with}
+    timed(register_with("pca", "tuned", None), device)      # warm-up: CUDA's start, the caches
+    for name, make in jobs.items():
+        method, preset = ("default", "tuned") if name.endswith("default") else ("statistical", "paper")
+        result, seconds = timed(make(method, preset, None), device) if not args.quick else (None, float("nan"))
+        short, short_seconds = timed(make(method, preset, few), device)
+        long, long_seconds = timed(make(method, preset, more), device)
+        per_iteration_s = (long_seconds - short_seconds) / max(long.iterations - short.iterations, 1)
+        rows[f"{name}: s per fit"] = seconds
+        rows[f"{name}: iterations"] = None if result is None else result.iterations
+        rows[f"{name}: ms/it"] = 1e3 * per_iteration_s
+        rows[f"{name}: set-up s"] = short_seconds - short.iterations * per_iteration_s
+        print(f"{name}: {seconds:.2f} s, {1e3 * per_iteration_s:.2f} ms/it", file=sys.stderr, flush=True)
+
+    count = 4 if args.quick else 16
+    scans = []
+    for seed in range(count):
+        person_rng = np.random.default_rng(100 + seed)
+        person = sample_target(ict, person_rng)
+        scans.append(scan_from_view(person, ict.faces, person_rng, 4300, float(person_rng.uniform(-40, 40))))
+    synchronize(device)
+    start = time.perf_counter()
+    for points_of_one in scans:
+        statfit.register(ict, points_of_one, "default", device=device)
+    synchronize(device)
+    rows[f"register default, {count} scans one after another: fits/s"] = count / (time.perf_counter() - start)
+
+    width = max(len(key) for key in rows)
+    print(f"| {'measure':<{width}} | value |\n|{'-' * (width + 2)}|---|")
+    for key, value in rows.items():
+        shown = f"{value:.3g}" if isinstance(value, float) else "-" if value is None else str(value)
+        print(f"| {key:<{width}} | {shown} |")
+    if args.out:
+        args.out.write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()
