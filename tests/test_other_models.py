@@ -149,3 +149,21 @@ def test_an_unforeseen_fault_inside_a_fit_is_one_line(tmp_path, monkeypatch):
     lines = [line for line in out.splitlines() if line.startswith("statfit: error")]
     assert code == 2 and len(lines) == 1 and "ValueError: 'x' must be finite" in lines[0], out
     assert "Traceback" not in out and not (tmp_path / "fit.ply").exists()
+
+
+def test_render_and_batch_run_on_a_face_mask(tmp_path, embedded_mask):
+    """The other commands on a mask model: a normal map fitted (short stages), and a batch of scans."""
+    model = tmp_path / "mask.npz"
+    save_model(embedded_mask, model)
+    assert run_cli(["synth", "normals", "--model", str(model), "--seed", "2", "--size", "96", "--out",
+                    str(tmp_path / "n.exr"), "--camera-out", str(tmp_path / "cam.json")])[0] == 0
+    code, out = run_cli(["render", str(tmp_path / "n.exr"), "--camera", str(tmp_path / "cam.json"), "--model",
+                         str(model), "--iterations", "20", "--out", str(tmp_path / "fit.ply"), "--quiet"])
+    assert code == 0 and (tmp_path / "fit.ply").is_file(), out
+    (tmp_path / "scans").mkdir()
+    for seed in range(2):
+        assert run_cli(["synth", "scan", "--model", str(model), "--seed", str(seed), "--realistic", "--out",
+                        str(tmp_path / "scans" / f"{seed}.ply")])[0] == 0
+    code, out = run_cli(["batch", "register", str(tmp_path / "scans" / "*.ply"), "--model", str(model),
+                         "--workers", "1", "--iterations", "20", "--out-dir", str(tmp_path / "fits"), "--quiet"])
+    assert code == 0 and len(list((tmp_path / "fits").glob("*.ply"))) == 2, out
