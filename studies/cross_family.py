@@ -1,0 +1,160 @@
+"""Cross-family registration: people of one model family scanned, fitted with another family's model
+(issue 37; docs/studies.md §17). A MakeHuman person fitted with ICT is a far better stand-in for a
+real person than ICT's own modes: another population, topology and resolution.
+
+Families and people: benchmarks/families.py (ICT head, ICT face mask, MakeHuman head, embedded
+head). Each person is scanned as a range scanner would (statfit.synth.scanner: one view, yaw in
+±30°, any rotation, millimetres, no clutter), the scan split at its middle into a left and a right
+half in the person's own frame; each half is fitted alone with the pose found without landmarks, and
+the other half is the test:
+
+- ``held``: mean distance (mm) from the held-out half's scan points to the fitted surface, leaving
+  out the points whose nearest surface point is on the fit's open boundary (beyond what the model
+  covers: a mask cannot be asked about the back of a head);
+- ``seen``: the same for the fitted half's points.
+
+"mean" is the model's mean placed by the same pose search (no shape fitted): the bar every fit must
+beat. Distances need no vertex correspondence, so any model can be scored on any person.
+
+    python studies/cross_family.py --people 2          # all pairs; cases run two at a time
+    python studies/cross_family.py --report            # tables from studies/results/cross_family.json
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from families import FAMILIES  # noqa: E402
+from study_runs import run_or_report  # noqa: E402
+
+RESULTS = ROOT / "studies" / "results" / "cross_family.json"
+METHODS = ("mean", "default", "pca", "statistical", "hybrid", "laplacian")
+# Candidates beside the shipped methods: name → register options.
+CANDIDATES = {"default, prior from held-out blocks": {"prior": "auto"}}
+HALVES = ("left", "right")
+SCAN_POINTS = 4300
+
+
+def case_scan(people: str, seed: int):
+    """The person's realistic scan (mm, posed) and its area-sampled points in the person's frame."""
+    from families import family_model, person
+    from statfit.structures.scan import Scan
+    from statfit.synth.scanner import realistic_scan
+
+    shape = person(people, seed)
+    faces = family_model(people).faces
+    rng = np.random.default_rng(500 + seed)
+    made = realistic_scan(shape, faces, rng, points=SCAN_POINTS, yaw_deg=rng.uniform(-30, 30), clutter=0.0,
+                          holes=0, units="mm")
+    scan = Scan.from_mesh(made.vertices, made.faces)
+    return scan, made.transform.inverse_apply(scan.points)
+
+
+def inside_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Distances (M,) from ``points`` (M, 3) to the surface, NaN where the nearest surface point lies
+    on the surface's open boundary (the point is beyond what the surface covers)."""
+    import torch
+
+    from statfit.geometry.closest import ClosestPointQuery, open_edges
+
+    query = ClosestPointQuery(faces, len(vertices), k=12)
+    hit = query(torch.as_tensor(vertices, dtype=torch.float64), torch.as_tensor(points, dtype=torch.float64))
+    opposite_open = open_edges(torch.as_tensor(faces))[hit.triangle]          # (M, 3): edge opposite corner i
+    on_boundary = (opposite_open & (hit.barycentric < 1e-6)).any(dim=1)
+    return np.where(on_boundary.numpy(), np.nan, hit.distance.numpy())
+
+
+def fit_case(people: str, model_family: str, seed: int, half: str, method: str) -> dict:
+    import torch
+
+    torch.set_num_threads(1)
+    from families import family_model
+    from statfit.core.threads import flush_denormals_everywhere
+    from statfit.registration.job import register
+    from statfit.registration.pose.search import estimate_pose
+    from statfit.structures.scan import Scan
+
+    flush_denormals_everywhere()
+    scan, own = case_scan(people, seed)
+    middle = np.median(own[:, 0])
+    seen = (own[:, 0] > middle) if half == "left" else (own[:, 0] <= middle)
+    fitted_half = Scan(scan.points[seen], scan.normals[seen])
+    model = family_model(model_family)
+    row = {"people": people, "model": model_family, "seed": seed, "half": half, "method": method}
+    try:
+        if method == "mean":
+            vertices, seconds = estimate_pose(model, fitted_half).transform.apply(model.template), 0.0
+        else:
+            options = CANDIDATES.get(method, {})
+            result = register(model, fitted_half, "default" if options else method, threads=1, **options)
+            vertices, seconds = result.vertices, result.seconds
+    except Exception as exc:   # a refusal is a result too
+        return row | {"error": f"{type(exc).__name__}: {exc}".splitlines()[0]}
+    held = inside_distance(scan.points[~seen], vertices, model.faces)
+    seen_distance = inside_distance(scan.points[seen], vertices, model.faces)
+    return row | {"held": float(np.nanmean(held)), "held_covered": float(np.mean(~np.isnan(held))),
+                  "seen": float(np.nanmean(seen_distance)), "seconds": seconds}
+
+
+def report(rows: list[dict]) -> str:
+    by = {(r["people"], r["model"], r["seed"], r["half"], r["method"]): r for r in rows}
+    pairs = list(dict.fromkeys((r["people"], r["model"]) for r in rows))
+    methods = [m for m in (*METHODS, *CANDIDATES) if any(r["method"] == m for r in rows)]
+    lines = ["Held-out half: mean distance (mm) of the held-out half's scan points to the fit, over "
+             "people × halves; in brackets the default's worst case ÷ the mean's on the same case.", "",
+             "| people | model | " + " | ".join(methods) + " | default ÷ mean | default ÷ best method | covered |",
+             "|---|---|" + "---|" * (len(methods) + 3)]
+    for people, model in pairs:
+        cases = sorted({(s, h) for (p, m, s, h, _) in by if (p, m) == (people, model)})
+
+        def mean_of(method: str) -> float:
+            values = [by[(people, model, s, h, method)].get("held", np.nan) for s, h in cases
+                      if (people, model, s, h, method) in by]
+            return float(np.mean(values)) if values else float("nan")
+
+        means = {m: mean_of(m) for m in methods}
+        ratios = [by[(people, model, s, h, "default")].get("held", np.nan)
+                  / by[(people, model, s, h, "mean")].get("held", np.nan) for s, h in cases
+                  if (people, model, s, h, "default") in by and (people, model, s, h, "mean") in by]
+        best = min(v for m, v in means.items() if m in METHODS and m not in ("mean", "default"))
+        covered = np.mean([by[(people, model, s, h, "default")].get("held_covered", np.nan) for s, h in cases
+                           if (people, model, s, h, "default") in by])
+        lines.append(f"| {people} | {model} | " + " | ".join(f"{means[m]:.2f}" for m in methods)
+                     + f" | {means['default'] / means['mean']:.2f} (worst {max(ratios):.2f}) | "
+                     f"{means['default'] / best:.2f} | {covered:.0%} |")
+    errors = [r for r in rows if "error" in r]
+    if errors:
+        lines += ["", f"Refused or failed: {len(errors)} fits, e.g. " + "; ".join(
+            f"{r['people']}→{r['model']} {r['method']}: {r['error']}" for r in errors[:3])]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--people", type=int, default=2, help="people per family")
+    parser.add_argument("--families", nargs="*", default=list(FAMILIES[:3]), help=f"of {', '.join(FAMILIES)}")
+    parser.add_argument("--methods", nargs="*", default=list(METHODS), help=f"of {', '.join((*METHODS, *CANDIDATES))}")
+    parser.add_argument("--report", action="store_true", help="only print the tables of the stored rows")
+    args = parser.parse_args()
+    runs = [(p, m, s, h, method) for p in args.families for m in args.families for s in range(args.people)
+            for h in HALVES for method in args.methods]
+    if not args.report:
+        from families import family_model, person
+
+        for family in args.families:     # build and cache models and people once, before the workers
+            family_model(family)
+            for seed in range(args.people):
+                person(family, seed)
+    run_or_report(fit_case, runs, RESULTS, report, args.report,
+                  key=lambda row: (row["people"], row["model"], row["seed"], row["half"], row["method"]))
+
+
+if __name__ == "__main__":
+    main()
