@@ -12,6 +12,11 @@ POLISH_TOLERANCE = 0.02    # the polished poses' score: a fit with every mode li
 IMPLAUSIBLE_RMS = 2.0       # coefficients (std-devs) no scan of a face needs, on average ...
 IMPLAUSIBLE_COEFFICIENT = 6.5  # ... or for one mode (a chance of ~1e-10 under the model)
 MIN_MATCHED = 0.3          # fewer scan points than this within TOLERANCE: no part of the scan is the model
+# ... unless the fit with every mode explains this share of the points (within POLISH_TOLERANCE): then the
+# scan is of what the model describes, a person far outside its population (measured: a sphere, a plane,
+# a shoulders tube ≤ 0.62; heads of another model family fitted 0.81-0.90, with coefficients up to
+# 2.2 on average and 6.6 in one mode; docs/studies.md §17).
+EXPLAINED = 0.75
 
 
 def score_poses(matcher: Matcher, points: np.ndarray, normals: np.ndarray, poses: Poses, tolerance: float = TOLERANCE
@@ -24,18 +29,24 @@ def score_poses(matcher: Matcher, points: np.ndarray, normals: np.ndarray, poses
     return capped.mean(axis=1), inlier.mean(axis=1)
 
 
-def check_plausible(matched: float, coefficients: np.ndarray, tolerance: float) -> None:
+def check_plausible(matched: float, explained: float, coefficients: np.ndarray, tolerance: float) -> str | None:
     """Refuse a scan that nothing of the model matches, or only a shape far outside the model:
-    fewer than MIN_MATCHED of its points near the first modes' best fit, or the best fit with every
+    fewer than MIN_MATCHED of its points near the first modes' best fit; or the best fit with every
     mode needing coefficients beyond IMPLAUSIBLE_RMS on average or IMPLAUSIBLE_COEFFICIENT in one
     mode (measured: a sphere, a plane, a shoulders tube ≥ 3.0 on average and ≥ 9.7 in one mode;
-    realistic face scans with clutter ≤ 1.3 and ≤ 4.0)."""
+    realistic face scans with clutter ≤ 1.3 and ≤ 4.0) while explaining less than EXPLAINED of the
+    points (``explained``, the polished fit's matched share). Returns a warning for a scan the model
+    explains only with such coefficients (a person far outside the model's people), else None."""
     if matched < MIN_MATCHED:
         raise StatfitError(f"the scan does not look like the model anywhere: at best {matched:.0%} of its points lie "
                            f"within {tolerance:.3g} model units of the surface in any pose (need {MIN_MATCHED:.0%}); "
                            "is it a scan of what the model describes?")
     rms, largest = float(np.sqrt(np.mean(coefficients**2))), float(np.abs(coefficients).max())
-    if rms > IMPLAUSIBLE_RMS or largest > IMPLAUSIBLE_COEFFICIENT:
+    if rms <= IMPLAUSIBLE_RMS and largest <= IMPLAUSIBLE_COEFFICIENT:
+        return None
+    if explained < EXPLAINED:
         raise StatfitError(f"the scan does not look like the model's shape: its best fit needs coefficients of "
                            f"{rms:.1f} standard deviations on average and {largest:.1f} at most, where a scan of what the model "
                            "describes needs about 1 (if it is one, place it with --landmarks)")
+    return (f"the scan lies far outside the model's people: its fit needs coefficients of {rms:.1f} standard "
+            f"deviations on average and {largest:.1f} at most (about 1 is usual); check the fit")

@@ -39,13 +39,14 @@ depends on units.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from statfit.errors import StatfitError
+from statfit.errors import StatfitError, StatfitWarning
 from statfit.geometry.align import Similarity
 from statfit.model.statmodel import StatModel, face_triangles, scalp_triangles
 from statfit.registration.hair import hair_suspects
@@ -170,7 +171,8 @@ def estimate_pose(model: StatModel, scan: Scan, seed: int = 0) -> PoseEstimate:
             matcher, mean, every_mode, points[polish], scan.normals[polish], in_place, move=False)
         if in_place_score <= KEEP_FRAME * polished_score:
             transform, matched, coefficients = in_place, in_place_matched, in_place_coefficients
-    check_plausible(coarse_matched, coefficients, TOLERANCE * frame.scale)
+    if (far := check_plausible(coarse_matched, matched, coefficients, TOLERANCE * frame.scale)) is not None:
+        warnings.warn(far, StatfitWarning, stacklevel=2)
     return PoseEstimate(to_scan_frame(transform, frame, centroid, units), coarse_score, matched, runner_up, units)
 
 
