@@ -75,6 +75,15 @@ def merged(existing: str, sections: list[Section], info: dict, device: str) -> s
     return head + "".join(f"\n## {n}. {title}\n{body}" for n, (title, body) in enumerate(titled.items(), 1))
 
 
+def with_gpu_sections(text: str, existing: str) -> str:
+    """``text`` with the sections of ``existing`` whose title starts with "GPU" carried over,
+    numbered on: they come from ``benchmarks/gpu.py`` on a GPU machine, which a CPU run cannot redo."""
+    count = text.count("\n## ")
+    kept = [body for body in existing.split("\n## ")[1:] if body.split("\n", 1)[0].split(". ", 1)[-1].startswith("GPU")]
+    return text.rstrip("\n") + "\n" + "".join(f"\n## {count + n}. {body.split('. ', 1)[1].rstrip()}\n"
+                                              for n, body in enumerate(kept, 1))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="small sizes, few iterations (a few minutes)")
@@ -110,6 +119,8 @@ def main() -> None:
         text = merged(args.out.read_text(), sections, info, args.device)
     else:
         text = report(sections, info, args.quick, args.device, time.perf_counter() - started)
+        if args.out.is_file() and not args.quick:
+            text = with_gpu_sections(text, args.out.read_text())
     args.out.write_text(text)
     print(f"wrote {args.out}")
 
