@@ -33,11 +33,13 @@ NORMAL_COSINE = 0.5
 ON_EDGE = 1e-6
 
 
-def masked_quantile(values: torch.Tensor, mask: torch.Tensor, q: float) -> torch.Tensor:
+def masked_quantile(values: torch.Tensor, mask: torch.Tensor, q: float | torch.Tensor) -> torch.Tensor:
     """``torch.quantile(values[mask], q)`` (linear interpolation) bit for bit, as a (1,) tensor, without
     compacting: static shapes, no host wait (NaN when no value is masked in)."""
     ordered = values.masked_fill(~mask, torch.inf).sort().values        # the masked-out last
-    ranks = torch.tensor(q, dtype=values.dtype, device=values.device) * (mask.sum() - 1)   # > −1: truncates to ≥ 0
+    if not isinstance(q, torch.Tensor):   # (a tensor kept by the caller: no copy to the device each time)
+        q = torch.tensor(q, dtype=values.dtype, device=values.device)
+    ranks = q * (mask.sum() - 1)                                         # > −1: truncates to ≥ 0
     low = ranks.long()
     below, above = ordered.gather(0, torch.stack([low, ranks.ceil().long()])).unbind(0)
     return below.lerp(above, ranks - low)
@@ -105,6 +107,7 @@ class ScanObjective:
         self._normals: torch.Tensor | None = None
         self._points_rows = points.view(-1, 1, 3)
         self._host_points = points.detach().cpu().double().numpy()
+        self._quantile = torch.tensor(1.0 - trim, dtype=points.dtype, device=points.device)
 
     def refresh(self, vertices: torch.Tensor) -> SurfacePoints:
         """Re-attach every scan point to its closest surface point."""
@@ -126,7 +129,8 @@ class ScanObjective:
             median = masked_median(dist, keep).double()
             keep &= dist <= (OUTLIER_SIGMAS * 1.4826 * median).clamp_min(FLOOR)
         if self.trim > 0:
-            keep &= dist <= masked_quantile(dist, keep, 1.0 - self.trim)
+            q = self._quantile if self._quantile.dtype == dist.dtype else 1.0 - self.trim
+            keep &= dist <= masked_quantile(dist, keep, q)
         self._keep = keep
         # the data term's weights: 1/M' per kept point for the value, 2/M' for the gradient
         # (M' = 0: NaN, as the mean of nothing)

@@ -22,7 +22,7 @@ from statfit.core.settings import FitSpace, Settings
 from statfit.model.statmodel import StatModel, face_triangles, region_triangles, scalp_triangles
 from statfit.objectives.landmarks import LandmarkObjective, WithLandmarks
 from statfit.objectives.scan import ScanObjective
-from statfit.structures.scan import Scan
+from statfit.structures.scan import Scan, sample_size
 from statfit.core.stages import Fit, run_stages
 from statfit.core.threads import choose_threads, intra_op_threads
 
@@ -153,6 +153,8 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
     method's settings; ``stages`` replaces the method altogether by an explicit pipeline. Warns (StatfitWarning) when the scan is far from the model with align='none'.
     """
     scan = points if isinstance(points, Scan) else Scan.from_points(check_scan(points))
+    # a dense scan: a subsample spread over it, sized from the model (statfit.structures.scan.sample_size)
+    scan = scan.thinned(sample_size(model.num_vertices))
     points = check_scan(scan.points)
     if not 0 <= trim < 1:
         raise StatfitError(f"trim must lie in [0, 1), got {trim}")
