@@ -17,13 +17,19 @@ from __future__ import annotations
 
 import torch
 
-from statfit.renderer import Camera, MeshAdjacency, fragment_normals, rasterize, silhouette_crossings
+from statfit.renderer import Camera, MeshAdjacency
+from statfit.renderer.steady import SteadyRenderer
 
 SILHOUETTE_WEIGHT = 1.0
 
 
 class NormalMapObjective:
-    """Data term of inverse rendering, in camera space (OpenCV axes)."""
+    """Data term of inverse rendering, in camera space (OpenCV axes).
+
+    Rendered by :class:`statfit.renderer.steady.SteadyRenderer` (static shapes, no host reads in the
+    steady state); the normal term is evaluated on the covered pixels only, the silhouette term over
+    the whole (padded) image.
+    """
 
     def __init__(self, normals: torch.Tensor, mask: torch.Tensor, camera: Camera, faces: torch.Tensor,
                  silhouette_weight: float = SILHOUETTE_WEIGHT, adjacency: MeshAdjacency | None = None,
@@ -33,35 +39,50 @@ class NormalMapObjective:
         pass it to share it between objectives; region_faces: (F,) bool, the triangles whose pixels
         the normal term uses (all when None)."""
         self.mask = mask.to(normals.dtype)
-        # Per-pixel lookups of the target at the covered pixels: normals (3, H·W), mask (H·W,).
-        self._normals_by_pixel = normals.reshape(-1, 3).T.contiguous()
-        self._mask_by_pixel = self.mask.reshape(-1)
         self.camera = camera
         self.faces = faces
         self.silhouette_weight = silhouette_weight
         self.adjacency = adjacency if adjacency is not None else MeshAdjacency.from_faces(faces)
         self.count = float(mask.sum())
         self.region_faces = region_faces
+        # The target on the renderer's padded pixel grid (one border pixel, then a dump pixel and
+        # its neighbours): normals (3, E), mask (E,); region (F+1,) per triangle, 0 for "none".
+        height, width = mask.shape
+        padded = normals.new_zeros(4, height + 2, width + 2)
+        padded[:3, 1:-1, 1:-1] = normals.permute(2, 0, 1)
+        padded[3, 1:-1, 1:-1] = self.mask
+        self._target = torch.nn.functional.pad(padded.view(4, -1), (0, width + 3))    # (4, E)
+        self._target_rows = self._target.T.contiguous()                                 # (E, 4)
+        self._region = torch.ones(len(faces) + 1, dtype=normals.dtype, device=normals.device)
+        self._region[-1] = 0
+        if region_faces is not None:
+            self._region[:-1] = region_faces.to(normals.dtype)
+        self._renderer: SteadyRenderer | None = None
 
     def prepare(self, vertices: torch.Tensor, iteration: int) -> None:
         """Nothing to precompute: visibility is part of each call."""
 
     def reset(self) -> None:
-        """Nothing is kept between calls."""
+        """Nothing is kept between calls (the renderer's buffers are sizes, not state)."""
 
     def __call__(self, vertices: torch.Tensor) -> dict[str, torch.Tensor]:
-        fragments = rasterize(vertices, self.faces, self.camera)
-        crossings = silhouette_crossings(fragments, self.faces, self.adjacency)
-        # The normal term is evaluated on the covered pixels only (C, M), never on the whole image.
-        normals = fragment_normals(vertices, self.faces, fragments, self.camera)                 # (3, M)
-        normals = crossings.blend_covered(normals.T, fragments.pixel).T
-        target = self._normals_by_pixel.index_select(1, fragments.pixel)
-        both = self._mask_by_pixel.index_select(0, fragments.pixel)
-        if self.region_faces is not None:
-            both = both * self.region_faces.index_select(0, fragments.face).to(both.dtype)
-        normal = ((normals - target).abs().sum(dim=0) * both).sum() / both.sum().clamp_min(1.0)
+        if self._renderer is None or self._renderer.dtype != vertices.dtype:
+            self._renderer = SteadyRenderer(self.faces, self.camera, self.adjacency, vertices.dtype)
+            self._target = self._target.to(vertices.dtype)
+            self._target_rows = self._target_rows.to(vertices.dtype)
+            self._region = self._region.to(vertices.dtype)
+        view = self._renderer(vertices)
+        pixels = self._renderer.pixels
+        with torch.no_grad():
+            # The covered pixels (before antialiasing) that the target covers too and, with a
+            # region, that show one of its triangles; the target's normals there.
+            target = self._target_rows.index_select(0, view.pixel).T                   # (4, M)
+            both = target[3] * self._region.index_select(0, view.face)
+        normals = view.blended_normals()                                                # (3, M)
+        normal = ((normals - target[:3]).abs().sum(dim=0) * both).sum() / both.sum().clamp_min(1.0)
         terms = {"normal": normal}
         if self.silhouette_weight:
-            mask = crossings.blend(fragments.coverage(vertices.dtype))[..., 0]
-            terms["silhouette"] = self.silhouette_weight * (mask - self.mask).square().sum() / self.count
+            coverage = view.blended_coverage(len(self.faces), vertices.dtype)[:pixels]
+            terms["silhouette"] = (coverage - self._target[3, :pixels]).square().sum() * (
+                self.silhouette_weight / self.count)
         return terms

@@ -1,0 +1,331 @@
+"""The normal-map renderer of a fitting loop: one mesh topology, one camera, many vertex positions.
+
+The same image as ``rasterize`` → ``fragment_normals`` → ``silhouette_crossings(...).blend`` (z-buffer,
+perspective-correct normals, analytic antialiasing with the same walk to the silhouette edge), laid
+out for a loop that calls it every iteration, on a GPU as on a CPU:
+
+* static shapes: the z-buffer's rows (triangle, bounding-box row) and covered (triangle, pixel)
+  pairs, the covered pixels and the pixel pairs examined for silhouette crossings live in buffers
+  sized at the first call (the need measured then × ``MARGIN``, plus ``FLOOR``), enumerated by
+  ``cumsum`` of start marks and addressed with masks instead of ``nonzero``, boolean indexing or
+  ``repeat_interleave``. Nothing is read back to the host in the steady state except, every
+  ``CHECK_EVERY`` calls, whether the largest need since the last check exceeded a buffer (one
+  read); a buffer that did is sized afresh at the next call. The calls in between dropped what did
+  not fit: with the margin, that takes a view whose covered area grows by a quarter within
+  ``CHECK_EVERY`` steps (a fit moves far less; the alignment's scale step of 1% moves ~30%);
+* what depends only on the topology or the camera (corner and opposite-vertex indices, the
+  triangles within two edge steps of each triangle, pixel centres, the projection) is built once;
+* per-pixel and per-pair work is component-major in few, large ops; the walk from a pixel pair to
+  its silhouette edge evaluates the whole two-step neighbourhood of the start triangle at once
+  (13 triangles) and then follows the path, instead of three dependent rounds; the per-pixel
+  normals and the crossing weights have hand-written backward passes.
+
+Images are flat over the pixels of the image padded by one pixel on every side (so neighbours never
+need a bounds test), then one dump slot that masked lanes write into (and its neighbours).
+
+The z-buffer and the pairs are those of the general functions (the same row spans and depth keys:
+the same triangle per pixel); the normals are evaluated from the edge functions at the pixel
+centres (not from per-triangle planes) and the blends summed in another order, so values differ
+at float rounding (float64: ~1e-14 relative, gradients included).
+"""
+from __future__ import annotations
+
+import math
+import sys
+
+import torch
+
+from statfit.renderer.raster import _EMPTY, _row_span
+from statfit.renderer.silhouette import _EPS, MeshAdjacency
+from statfit.renderer.steady_parts import (SteadyView, _CrossingWeights, _PixelNormals, _silhouette_flags,
+                                           _vertex_normals)
+from statfit.structures.camera import Camera
+
+MARGIN = 1.25       # buffer size / need at sizing
+FLOOR = 256         # and at least this many slots more
+CHECK_EVERY = 16    # calls between reads of the largest need (the only host reads in the steady state)
+_LOW32 = 0xFFFFFFFF
+_BUFFERS = ("rows", "candidates", "pixels", "edges", "pairs")
+
+
+class SteadyRenderer:
+    """Antialiased camera-space normals and coverage of a fixed mesh topology in a fixed camera.
+
+    faces: (F, 3) long; adjacency: ``MeshAdjacency.from_faces(faces)``; dtype: the vertices'. Call
+    with vertices (N, 3) → :class:`SteadyView`.
+    """
+
+    def __init__(self, faces: torch.Tensor, camera: Camera, adjacency: MeshAdjacency, dtype: torch.dtype,
+                 near: float = 1e-3):
+        device = faces.device
+        self.device, self.dtype, self.near = device, dtype, near
+        height, width = camera.height, camera.width
+        self.height, self.width = height, width
+        self.stride = stride = width + 2
+        self.pixels = pixels = (height + 2) * stride                  # padded image; slot ``pixels``: dump
+        count = len(faces)
+        self.count = count
+        long = dict(dtype=torch.long, device=device)
+        pose = camera.world_to_camera.to(device=device, dtype=dtype)
+        K = camera.K.to(device=device, dtype=dtype)
+        self._rotation_t = pose[:3, :3].T.contiguous()
+        self._translation = pose[:3, 3].contiguous()
+        self._focal_t = K[:2, :2].T.contiguous()
+        self._principal = K[:2, 2].contiguous()
+        self._last_pixel = torch.tensor([[width - 1], [height - 1]], dtype=dtype, device=device)
+        corners = faces.T.reshape(-1)
+        self._corners = corners                                        # (3F,) corner-major
+        self._gather = torch.cat([corners, adjacency.opposite.T.reshape(-1)])     # corners, then opposites
+        padded = torch.cat([faces, faces.new_zeros(1, 3)])             # triangle F: none (vertex 0 thrice)
+        self._faces = padded                                            # (F+1, 3)
+        # Endpoints of edge e (corner e+1 → e+2) of triangle t at row 3t + e.
+        self._edge_ends = torch.stack([padded.roll(-1, 1), padded.roll(-2, 1)], dim=2).reshape(-1, 2)
+        neighbor = torch.cat([torch.where(adjacency.neighbor < 0, count, adjacency.neighbor),
+                              torch.full((1, 3), count, **long)])          # (F+1, 3), none → F
+        self._neighbor_t = neighbor.T.contiguous()
+        second = neighbor.index_select(0, neighbor.reshape(-1)).view(-1, 9)
+        # The triangles within two edge steps: self, across edge e (1 + e), then across its edge f (4 + 3e + f).
+        self._ring = torch.cat([torch.arange(count + 1, **long)[:, None], neighbor, second], dim=1).contiguous()
+        self.extent = extent = pixels + stride + 1                      # the dump slot's neighbours too
+        index = torch.arange(extent, **long)
+        col, row = index % stride - 1, index // stride - 1
+        self._centre = torch.stack([col, row]).to(dtype) + 0.5         # (2, extent)
+        self._in_image = (col >= 0) & (col < width) & (row >= 0) & (row < height)
+        self._pixel_index = index
+        # The four neighbours of a pixel: +x, -x, +y, -y; row 4: a masked lane.
+        self._offset = torch.tensor([1, -1, stride, -stride, 0], **long)
+        self._before = torch.tensor([[0], [1], [0], [1]], **long)     # the neighbour comes first in the pair
+        self._axis = torch.tensor([0, 0, 1, 1, 0], **long)
+        self._direction = torch.tensor([1.0, -1.0, 1.0, -1.0, 1.0], dtype=dtype, device=device)
+        self._axis_rows = torch.tensor([0, 0, 1, 1], **long)
+        self._low = 0 if sys.byteorder == "little" else 1
+        self._sizes: dict[str, int] = {}
+        self._aranges: dict = {}
+        self._need: torch.Tensor | None = None
+        self._calls = 0
+
+    # --- buffers ----------------------------------------------------------------------------------------
+
+    def _size(self, name: str, need: torch.Tensor) -> int:
+        """The buffer size for ``name``; measured (one host read) only when not sized yet."""
+        if name not in self._sizes:
+            self._sizes[name] = int(math.ceil(int(need) * MARGIN)) + FLOOR
+        return self._sizes[name]
+
+    def _ones(self, size: int) -> torch.Tensor:
+        if -size not in self._aranges:
+            self._aranges[-size] = torch.ones(size, dtype=torch.long, device=self.device)
+        return self._aranges[-size]
+
+    def _arange(self, size: int) -> torch.Tensor:
+        if size not in self._aranges:
+            self._aranges[size] = torch.arange(size, dtype=torch.long, device=self.device)
+        return self._aranges[size]
+
+    def _check(self, need: torch.Tensor) -> None:
+        """Keep the largest need (on the device); every ``CHECK_EVERY`` calls read whether it
+        exceeded a buffer (one host read) and, if so, forget the sizes of those buffers."""
+        self._need = need if self._need is None else torch.maximum(self._need, need)
+        self._calls += 1
+        if self._calls % CHECK_EVERY == 0:
+            sizes = torch.tensor([self._sizes[name] for name in _BUFFERS], device=self.device)
+            over = self._need > sizes
+            self._need = None
+            if bool(over.any()):
+                for name, too_small in zip(_BUFFERS, over.tolist()):
+                    if too_small:
+                        del self._sizes[name]
+
+    # --- the view -----------------------------------------------------------------------------------------
+
+    def __call__(self, vertices: torch.Tensor) -> SteadyView:
+        count = self.count
+        camera_points = torch.addmm(self._translation, vertices, self._rotation_t)       # (N, 3)
+        depth = camera_points[:, 2:]
+        screen = camera_points[:, :2].mm(self._focal_t) / depth + self._principal        # (N, 2)
+        normals = _vertex_normals(camera_points, self._corners)                          # (3, N)
+        with torch.no_grad():
+            table = torch.cat([screen, depth], dim=1).T                                  # (3, N)
+            gathered = table.index_select(1, self._gather).view(3, 2, 3, count)
+            corner, opposite = gathered[:, 0], gathered[:2, 1]                          # (3, 3, F), (2, 3, F)
+            corner_j, corner_k = corner.roll(-1, 1), corner.roll(-2, 1)
+            keys, area2, raster_need = self._zbuffer(corner)
+            flags = _silhouette_flags(corner_j, corner_k, opposite, area2)               # (2, 3, F)
+            walk = (torch.nn.functional.pad(corner[:2].reshape(6, count), (0, 1)),      # corner x, y rows
+                    torch.cat([torch.nn.functional.pad(flags.view(6, count), (0, 1)).long(), self._neighbor_t]))
+            words = keys.view(torch.int32).view(-1, 2)
+            triangle = words[:, self._low].long().remainder_(count + 1)                 # background → F
+            covered = triangle < count
+            # Covered pixels, ascending, into a buffer of M slots (dump slots: the dump pixel).
+            pixel, running = self._select(covered, "pixels")                             # lanes: pixels
+            slot = torch.where(covered, running - 1, len(pixel)).clamp_max_(len(pixel))   # pixel → slot
+            pixel.clamp_max_(self.pixels)
+            face = triangle.index_select(0, pixel)
+            sign = torch.cat([area2.sign(), area2.new_ones(1)]).index_select(0, face)
+            pairs, pair_need = self._pairs(keys, pixel, face, flags, walk)
+            self._check(torch.cat([raster_need, running[-1:], pair_need]))
+        data = torch.cat([screen.T, depth.T, normals])                                  # (6, N)
+        pixel_normals = _PixelNormals.apply(data, face, self._faces, self._centre.index_select(1, pixel), sign)
+        target, source, weight = self._crossings(screen, pairs)
+        with torch.no_grad():
+            slot = slot.index_select(0, torch.cat([target, source])).view(2, -1)         # dump: M
+        return SteadyView(pixel, face, triangle, pixel_normals, target, source, weight, slot)
+
+    def _select(self, flags: torch.Tensor, name: str) -> tuple[torch.Tensor, torch.Tensor]:
+        """The indices of the set ``flags`` (L,) bool, ascending, in a buffer of slots (past the
+        last: L), and the running count (L,) (its last entry: the need). On a GPU each slot looks
+        its lane up (``searchsorted`` in the running count): a scatter's many writes to one dump
+        slot serialise under CUDA's deterministic algorithms. On a CPU the scatter is the faster."""
+        running = torch.cumsum(flags, 0)
+        slots = self._size(name, running[-1])
+        if self.device.type != "cpu":
+            if ("from 1", slots) not in self._aranges:
+                self._aranges["from 1", slots] = torch.arange(1, slots + 1, dtype=torch.long, device=self.device)
+            return torch.searchsorted(running, self._aranges["from 1", slots]), running
+        slot = torch.where(flags, running - 1, slots).clamp_max_(slots)
+        lanes = torch.full((slots + 1,), len(flags), dtype=torch.long, device=self.device)
+        return lanes.scatter_(0, slot, self._arange(len(flags)))[:slots], running
+
+    def _owners(self, counts: torch.Tensor, name: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Enumerate (owner, index) pairs, 0 ≤ index < counts[owner], into a buffer of slots: owner
+        (slots,) (len(counts): past the end) and index (slots,); and the need (0-d). ``searchsorted``
+        without its binary search: the owners whose first pair lies at or before a slot, less one."""
+        ends = torch.cumsum(counts, 0)
+        slots = self._size(name, ends[-1])
+        starts = ends - counts
+        marks = torch.zeros(slots + 1, dtype=torch.long, device=self.device)
+        owner = marks.index_add_(0, starts.clamp_max(slots), self._ones(len(counts))).cumsum_(0)[:slots] - 1
+        owner = torch.where(self._arange(slots) < ends[-1], owner, len(counts))
+        padded = torch.nn.functional.pad(starts, (0, 1), value=0)
+        return owner, self._arange(slots) - padded.index_select(0, owner), ends[-1]
+
+    def _zbuffer(self, corner: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Packed (depth bits, triangle) keys (extent,) of the nearest triangle per pixel
+        (``_EMPTY``: none), twice the triangles' signed screen areas (F,) and the buffers' needs
+        (2,). As ``raster._zbuffer``: per triangle, the screen-space barycentrics / corner depth
+        are planes in the offset from the first pixel centre of its bounding box; each row of the
+        box solves for its span of covered pixel centres; the covered pixels are enumerated. No
+        gradient."""
+        count = self.count
+        low, high = torch.aminmax(corner[:2], dim=1)                                     # (2, F) each
+        first = (low - 0.5).ceil_().clamp_min_(0)
+        size = ((high - 0.5).floor_().minimum(self._last_pixel) - first + 1).clamp_min_(0)   # cols, rows
+        rel = corner[:2] - (first + 0.5)[:, None]                                       # (2, 3, F)
+        (xj, yj), (xk, yk) = rel.roll(-1, 1), rel.roll(-2, 1)
+        value = xj * yk - xk * yj                                                       # edge functions
+        area2 = value.sum(dim=0)                                                        # twice the signed area
+        usable = torch.cat([(high - low) < torch.inf, corner[2] > self.near]).all(dim=0) & (area2 != 0)
+        planes = torch.stack([value, yj - yk, xk - xj]) / (torch.where(usable, area2, 1.0) * corner[2])
+        cols, rows = torch.where(usable, size, 0).long()
+        # Rows: the planes' values at the row's first pixel and their x slopes, 1/z's too.
+        owner, dy, rows_need = self._owners(rows, "rows")
+        origin = first[1].long() * self.stride + first[0].long() + (self.stride + 1)   # padded first pixel
+        integers = torch.nn.functional.pad(torch.stack([cols, origin]), (0, 1))
+        floats = torch.nn.functional.pad(planes.view(9, count), (0, 1))
+        width, origin = integers.index_select(1, owner)
+        value, slope_x, slope_y = floats.index_select(1, owner).view(3, 3, -1)          # (3, R) each
+        start = torch.addcmul(value, slope_y, dy.to(value.dtype))
+        span_first, span_count = _row_span(start, slope_x, width.to(value.dtype))
+        inverse = torch.cat([start, slope_x]).view(2, 3, -1).sum(dim=1)                # 1/z at x = 0, its slope
+        rows_table = torch.stack([origin + dy * self.stride + span_first, owner])
+        depth_table = torch.stack([torch.addcmul(inverse[0], span_first.to(value.dtype), inverse[1]), inverse[1]])
+        # Covered pixels of the rows.
+        row, dx, pixels_need = self._owners(torch.where(owner < count, span_count, 0), "candidates")
+        base, triangle = torch.nn.functional.pad(rows_table, (0, 1), value=self.pixels).index_select(1, row)
+        inverse_start, inverse_step = torch.nn.functional.pad(depth_table, (0, 1), value=1.0).index_select(1, row)
+        depth_bits = torch.addcmul(inverse_start, dx.to(inverse_step.dtype), inverse_step).reciprocal_().float()
+        key = depth_bits.view(torch.int32).long().bitwise_left_shift_(32).bitwise_or_(triangle)
+        inside = row < len(owner)
+        keys = torch.full((self.extent,), _EMPTY, dtype=torch.int64, device=self.device)
+        keys.scatter_reduce_(0, torch.where(inside, base + dx, self.pixels), torch.where(inside, key, _EMPTY),
+                             reduce="amin")
+        return keys, area2, torch.stack([rows_need, pixels_need])
+
+    def _pairs(self, keys: torch.Tensor, pixel: torch.Tensor, face: torch.Tensor, flags: torch.Tensor,
+               walk: tuple[torch.Tensor, torch.Tensor]) -> tuple[tuple[torch.Tensor, ...], torch.Tensor]:
+        """The adjacent pixel pairs whose segment meets a silhouette edge of their direction class,
+        in a buffer of K slots: inner (the foreground pixel), outer, axis, direction (±1), the inner
+        pixel centre (2, K), the triangle and edge crossed, and whether the slot holds such a pair
+        (K,); and the buffers' needs (2,). No gradient."""
+        count = self.count
+        code = torch.nn.functional.pad(flags.any(dim=1), (0, 1))                      # (2, F+1)
+        code = code.index_select(1, self._ring.view(-1)).view(2, count + 1, -1).any(dim=2)
+        # Only the covered pixels whose triangle lies within two edge steps of a silhouette edge
+        # start a pair: those, into a buffer of their own (dump: the dump pixel, triangle F).
+        near = code.any(dim=0).index_select(0, face)
+        lane, running = self._select(near, "edges")
+        pixel = torch.nn.functional.pad(pixel, (0, 1), value=self.pixels).index_select(0, lane)
+        face = torch.nn.functional.pad(face, (0, 1), value=count).index_select(0, lane)
+        edges_need, slots_m = running[-1], len(lane)
+        code = code.index_select(0, self._axis_rows)                                    # (4, F+1) per direction
+        key_p = keys.index_select(0, pixel)                                             # (M,)
+        neighbour = pixel + self._offset[:4, None]                                      # (4, M)
+        key_q = keys.index_select(0, neighbour.view(-1)).view(4, -1)
+        # The pixel is the foreground one: nearer (ties: the later of the two in the pair), or alone.
+        front = (key_q >> 32) > ((key_p >> 32) - self._before)
+        differ = (key_q & _LOW32) != (key_p & _LOW32)
+        found = front & differ & self._in_image.index_select(0, neighbour.view(-1)).view(4, -1)
+        found &= code.index_select(1, face)
+        chosen, running = self._select(found.view(-1), "pairs")                        # 4M: masked
+        lanes = 4 * slots_m
+        direction_id = chosen.div(slots_m, rounding_mode="floor")                      # 4: masked
+        m = chosen - direction_id * slots_m
+        inner = pixel.index_select(0, m)
+        outer = inner + self._offset.index_select(0, direction_id)
+        axis = self._axis.index_select(0, direction_id)
+        direction = self._direction.index_select(0, direction_id)
+        start = face.index_select(0, m)
+        centre = self._centre.index_select(1, inner)                                    # (2, K)
+        triangle, edge, hit = self._walk(start, centre, axis, direction, *walk)
+        hit &= chosen < lanes
+        return (inner, outer, axis, direction, centre, triangle, edge, hit), torch.stack([edges_need, running[-1]])
+
+    def _walk(self, start: torch.Tensor, centre: torch.Tensor, axis: torch.Tensor, direction: torch.Tensor,
+              corner_table: torch.Tensor, fact_table: torch.Tensor
+              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Follow each pair's segment from its foreground pixel centre through up to 3 triangles to
+        the first silhouette edge (as ``silhouette._walk``), evaluating the 13 triangles within two
+        edge steps of the start at once. Returns the triangle and edge crossed and whether one of the
+        pair's direction class was found (K,). corner_table: (6, F+1) corner x, y; fact_table: (9, F+1)
+        silhouette flags h, v and the neighbour across each edge. No gradient."""
+        count = self.count
+        ring = self._ring.index_select(0, start)                                        # (K, 13)
+        corners = corner_table.index_select(1, ring.view(-1)).view(2, 3, *ring.shape)
+        rel = corners - centre[:, None, :, None]                                        # (2, 3, K, 13)
+        horizontal = (axis == 0)[:, None]
+        frame = torch.where(horizontal, rel, rel.flip(0))                               # along, across
+        frame_j, frame_k = frame.roll(-1, 1), frame.roll(-2, 1)
+        aj, bj, ak, bk = frame_j[0], frame_j[1], frame_k[0], frame_k[1]
+        crosses = torch.signbit(bj) != torch.signbit(bk)
+        position = direction[:, None] * (aj * bk - ak * bj) / torch.where(crosses, bk - bj, 1.0)
+        position, edge = torch.where(crosses, position, -torch.inf).max(dim=0)          # (K, 13)
+        leaves = (position > -_EPS) & (position < 1 + _EPS)
+        facts = fact_table.index_select(1, ring.view(-1)).view(3, 3, *ring.shape)  # h, v, next × edge
+        h, v, nxt = facts.gather(1, edge[None, None].expand(3, 1, *ring.shape)).squeeze(1)
+        stop = leaves & ((h | v) != 0)
+        state = torch.stack([stop & (torch.where(horizontal, h, v) != 0),               # found here
+                             leaves & ~stop & (nxt < count), edge])                     # walk on; edge
+        first = state[:, :, 0]                                                          # (3, K)
+        node = first[2] + 1
+        second = state.gather(2, node[None, :, None].expand(3, -1, 1)).squeeze(2)
+        node2 = first[2] * 3 + second[2] + 4
+        third = state.gather(2, node2[None, :, None].expand(3, -1, 1)).squeeze(2)
+        first, second, third = first != 0, second != 0, third != 0
+        at_second = first[1] & second[0]
+        at_third = first[1] & second[1] & third[0]
+        which = torch.where(first[0], 0, torch.where(at_second, node, node2))
+        triangle = ring.gather(1, which[:, None]).squeeze(1)
+        edge = edge.gather(1, which[:, None]).squeeze(1)
+        return triangle, edge, first[0] | at_second | at_third
+
+    def _crossings(self, screen: torch.Tensor, pairs: tuple[torch.Tensor, ...]
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Blend targets, sources (K,) and differentiable weights; masked slots blend the dump pixel."""
+        inner, outer, axis, direction, centre, triangle, edge, hit = pairs
+        with torch.no_grad():
+            ends = self._edge_ends.index_select(0, triangle * 3 + edge)                 # (K, 2)
+        weight, near_inner = _CrossingWeights.apply(screen, ends.view(-1), centre.T, axis == 0, direction, hit)
+        with torch.no_grad():
+            target = torch.where(hit, torch.where(near_inner, inner, outer), self.pixels)
+            source = torch.where(near_inner, outer, inner)
+        return target, source, weight

@@ -1,0 +1,152 @@
+"""The pieces of :class:`statfit.renderer.steady.SteadyRenderer` with gradients: per-pixel normals and
+silhouette crossing weights with hand-written backward passes, the view it returns and its blends,
+vertex normals and silhouette flags.
+"""
+from __future__ import annotations
+
+import torch
+
+
+class _PixelNormals(torch.autograd.Function):
+    """Perspective-correct unit normals (3, M) at pixel centres: Σ_k e_k n_k / z_k, normalised,
+    where e_k are the edge functions at the pixel centre (the barycentrics × twice the signed
+    area, so ``sign`` (M,) = the area's sign makes it the same for either winding).
+
+    data: (6, N) screen x, y, depth, normal x, y, z per vertex; face: (M,) the pixels' triangles
+    into faces (F+1, 3); centre: (2, M). Hand-written backward (a few large ops instead of
+    autograd's per-op graph) that sums the pixels' gradients per triangle, then per vertex: two
+    short scatters rather than one whose long runs of repeated vertices serialise under CUDA's
+    deterministic algorithms."""
+
+    @staticmethod
+    def forward(ctx, data, face, faces, centre, sign):
+        corners = faces.index_select(0, face).T.reshape(-1)                            # corner-major (3M,)
+        at = data.index_select(1, corners).view(6, 3, -1)                               # (6, 3, M)
+        rel = at[:2] - centre[:, None]                                                  # (2, 3, M)
+        rel_j, rel_k = rel.roll(-1, 1), rel.roll(-2, 1)
+        edge = rel_j[0] * rel_k[1] - rel_k[0] * rel_j[1]                                # (3, M)
+        weight = edge / at[2]
+        summed = (at[3:] * weight).sum(dim=1)                                           # (3, M)
+        scale = (summed * summed).sum(dim=0).clamp_min(torch.finfo(summed.dtype).tiny).rsqrt() * sign
+        normals = summed * scale
+        ctx.save_for_backward(at, rel_j, rel_k, weight, normals, scale, face, faces)
+        ctx.vertices = data.shape[1]
+        return normals
+
+    @staticmethod
+    def backward(ctx, grad):
+        at, rel_j, rel_k, weight, normals, scale, face, faces = ctx.saved_tensors
+        grads = at.new_empty(at.shape)                                                  # d/d at (6, 3, M)
+        along = scale * (grad - normals * (normals * grad).sum(dim=0))                 # d/d summed (3, M)
+        torch.mul(along[:, None], weight, out=grads[3:])                                # the corner normals
+        grad_edge = (at[3:] * along[:, None]).sum(dim=0) / at[2]                        # (3, M)
+        torch.mul(grad_edge, weight, out=grads[2]).neg_()                               # the corner depths
+        # e_k = X_{k+1} Y_{k+2} − X_{k+2} Y_{k+1} with X, Y relative to the pixel centre.
+        edge_1, edge_2 = grad_edge.roll(1, 0), grad_edge.roll(2, 0)
+        torch.mul(edge_1, rel_j[1], out=grads[0]).sub_(edge_2 * rel_k[1])
+        torch.mul(edge_2, rel_k[0], out=grads[1]).sub_(edge_1 * rel_j[0])
+        per_triangle = grads.new_zeros(18, len(faces)).index_add_(1, face, grads.view(18, -1))
+        grad_data = grads.new_zeros(6, ctx.vertices).index_add_(1, faces.T.reshape(-1), per_triangle.view(6, -1))
+        return grad_data, None, None, None, None
+
+
+class _CrossingWeights(torch.autograd.Function):
+    """Blend weights ``|0.5 − d|`` (K,) of silhouette crossings, d ∈ [0, 1] where the edge between
+    the vertices ``ends`` (2K,) crosses the segment from the pixel centre (K, 2) to its neighbour
+    (along x where ``horizontal``, else y; ``direction`` ±1); and whether d < 0.5 (no gradient).
+    As ``silhouette_crossings``; slots without a crossing (``hit`` false) get finite values.
+    Hand-written backward."""
+
+    @staticmethod
+    def forward(ctx, screen, ends, centre, horizontal, direction, hit):
+        rel = screen.index_select(0, ends).view(-1, 2, 2) - centre[:, None]           # (K, 2 ends, 2)
+        frame = torch.where(horizontal[:, None, None], rel, rel.flip(2))               # along, across
+        (aj, bj), (ak, bk) = frame.unbind(1)[0].unbind(1), frame.unbind(1)[1].unbind(1)
+        span = torch.where(hit, bk - bj, 1.0)
+        raw = direction * (aj * bk - ak * bj) / span
+        crossing = raw.clamp(0.0, 1.0)
+        ctx.save_for_backward(ends, horizontal, frame, span,
+                              direction * ((raw >= 0) & (raw <= 1) & hit) * torch.sign(crossing - 0.5))
+        ctx.vertices = screen.shape[0]
+        ctx.mark_non_differentiable(crossing)
+        return (0.5 - crossing).abs(), crossing < 0.5
+
+    @staticmethod
+    def backward(ctx, grad, _):
+        ends, horizontal, frame, span, factor = ctx.saved_tensors
+        q = grad * factor / span                                                        # d/d(aj bk − ak bj)
+        (aj, bj), (ak, bk) = frame.unbind(1)[0].unbind(1), frame.unbind(1)[1].unbind(1)
+        r = q * (aj - ak) / span
+        # d/d(along, across) of the ends j, k: [q, r] ⊗ [bk, −bj]
+        grads = torch.stack([bk, -bj], dim=1)[:, :, None] * torch.stack([q, r], dim=1)[:, None, :]
+        grads = torch.where(horizontal[:, None, None], grads, grads.flip(2))
+        grad_screen = grads.new_zeros(ctx.vertices, 2).index_add_(0, ends, grads.view(-1, 2))
+        return grad_screen, None, None, None, None, None
+
+
+def _vertex_normals(points: torch.Tensor, corners: torch.Tensor) -> torch.Tensor:
+    """Unit area-weighted vertex normals (3, N) of ``points`` (N, 3); corners: faces.T flattened."""
+    a, b, c = points.T.index_select(1, corners).view(3, 3, -1).unbind(dim=1)
+    face = torch.linalg.cross(b - a, c - a, dim=0)
+    summed = points.new_zeros(3, len(points)).index_add_(1, corners, face.repeat(1, 3))
+    return summed * (summed * summed).sum(dim=0).clamp_min(torch.finfo(summed.dtype).tiny).rsqrt()
+
+
+def _silhouette_flags(corner_j: torch.Tensor, corner_k: torch.Tensor, opposite: torch.Tensor,
+                      area2: torch.Tensor) -> torch.Tensor:
+    """(2, 3, F) bool, as ``silhouette._silhouette_flags``: edge i is a silhouette and mostly
+    vertical ([0]) or horizontal ([1]). corner_j, corner_k: (3 coords, 3, F) rolled corners;
+    opposite: (2, 3, F)."""
+    rel_j, rel_k = corner_j[:2] - opposite, corner_k[:2] - opposite
+    other = rel_j[0] * rel_k[1] - rel_k[0] * rel_j[1]
+    silhouette = torch.signbit(other) == torch.signbit(area2)
+    extent = (corner_k[:2] - corner_j[:2]).abs_()
+    steep = extent[1] >= extent[0]
+    return torch.stack([silhouette & steep, silhouette & ~steep])
+
+
+class SteadyView:
+    """One call's result: the covered pixels and their normals, and the silhouette blends.
+
+    pixel: (M,) padded flat indices of the covered pixels, ascending (dump slots: the dump pixel);
+    face: (M,) their triangles (F: none); triangle: (extent,) per padded pixel (F: background);
+    normals: (3, M) unit camera-space normals, not antialiased, differentiable; target, source,
+    weight: (K,) blends (masked: target the dump pixel); slot: (2, K) the slots in ``pixel`` of
+    target and source (M: not covered).
+    """
+
+    def __init__(self, pixel, face, triangle, normals, target, source, weight, slot):
+        self.pixel, self.face, self.triangle, self.normals = pixel, face, triangle, normals
+        self.target, self.source, self.weight, self.slot = target, source, weight, slot
+
+    def blended_normals(self) -> torch.Tensor:
+        """The normals (3, M) antialiased (the background's normal is 0), as
+        ``EdgeCrossings.blend_covered``; differentiable w.r.t. the normals and the weights."""
+        padded = torch.nn.functional.pad(self.normals, (0, 1))
+        return _BlendColumns.apply(padded, self.slot[0], self.slot[1], self.weight)[:, :-1]
+
+    def blended_coverage(self, count: int, dtype: torch.dtype) -> torch.Tensor:
+        """The coverage (extent,) antialiased; differentiable w.r.t. the weights. count: F."""
+        with torch.no_grad():
+            covered = (self.triangle < count).to(dtype)
+            difference = covered.index_select(0, self.source) - covered.index_select(0, self.target)
+        return covered.index_add(0, self.target, self.weight * difference)
+
+
+class _BlendColumns(torch.autograd.Function):
+    """out = values, with out[:, target] += weight · (values[:, source] − values[:, target]) (K
+    blends); values (C, M). As ``silhouette._Blend`` along columns."""
+
+    @staticmethod
+    def forward(ctx, values, target, source, weight):
+        difference = values.index_select(1, source) - values.index_select(1, target)    # (C, K)
+        ctx.save_for_backward(target, source, weight, difference)
+        return values.index_add(1, target, weight * difference)
+
+    @staticmethod
+    def backward(ctx, grad):
+        target, source, weight, difference = ctx.saved_tensors
+        grad_target = grad.index_select(1, target)                                      # (C, K)
+        share = weight * grad_target
+        grad_values = grad.index_add(1, torch.cat([source, target]), torch.cat([share, -share], dim=1))
+        return grad_values, None, None, (grad_target * difference).sum(dim=0)
