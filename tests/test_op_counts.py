@@ -8,7 +8,7 @@ iteration, so set-up is not counted. The record step's one read of the loss valu
 (:func:`statfit.core.fit.host_values`, a ``.tolist()`` that a dispatch mode does not see on a CPU)
 is counted as a wait too.
 
-Measured 2026-11-26 (torch 2.13, CPU): 54.9 ops and 0.1 waits per iteration (the record steps'
+Measured 2026-11-26 (torch 2.13, CPU): 54.8 ops and 0.1 waits per iteration (the record steps'
 reads, one per 10 iterations); before the issue: 88 ops and 1.2 waits (a finiteness check of the
 vertices every iteration, an ``.any()`` at every refresh, one ``float`` per loss term per record).
 """
