@@ -11,7 +11,8 @@ busy core, beside their errors on the nine study cases), batch (the batch engine
 one-by-one registration, its overhead per fit, and the manifest at 10,000 inputs with kills), real_scans
 (realistic ICT scans in any pose and unit: the automatic pose against landmarks, and clutter), bodies
 (the MakeHuman body model's build time and size, `statfit render` on a 768² body map), splat (the
-surfel renderer's forward + backward at 256², a default `statfit splat` fit on 24 views).
+surfel renderer's forward + backward at 256², a default `statfit splat` fit on 24 views), big_scans
+(`register` on 4,300 / 100,000 / 1,000,000-point ICT scans: seconds, peak memory, error).
 ``--only`` with parts of the list rewrites only those sections of an existing report (each marked
 as regenerated alone). ``--quick`` runs small sizes and few iterations (a few minutes on 2 cores): it checks that everything
 runs; its numbers are not the ones to quote. Raw numbers go to benchmarks/results/<part>[_quick].json.
@@ -31,8 +32,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import ICT_MODEL, ROOT, Section, machine, save_json  # noqa: E402
 
 PARTS = ("filter_scaling", "convergence", "peers", "end_to_end", "inpainting", "register_speed", "batch",
-         "real_scans", "bodies", "splat")
-NEEDS_ICT = ("convergence", "peers", "end_to_end", "register_speed", "real_scans", "splat")
+         "real_scans", "bodies", "splat", "big_scans")
+NEEDS_ICT = ("convergence", "peers", "end_to_end", "register_speed", "real_scans", "splat", "big_scans")
 
 
 def run_part(name: str, quick: bool, device: str, image_dir: Path) -> Section:
