@@ -13,12 +13,20 @@ from statfit.renderer import Camera, rasterize
 def observed_vertices(vertices: np.ndarray, points: np.ndarray, radius: float | None = None) -> np.ndarray:
     """Boolean mask (N,): vertices within ``radius`` of an observed point; by default three times
     the points' median nearest-neighbour spacing."""
+    return nearest_point_distance(vertices, points, radius)[1]
+
+
+def nearest_point_distance(vertices: np.ndarray, points: np.ndarray, radius: float | None = None
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) distance of each vertex (N, 3) to the nearest of ``points`` (M, 3), and (N,) bool whether
+    it lies within ``radius`` (default: three times the points' median nearest-neighbour spacing) —
+    one KD-tree for both."""
     tree = cKDTree(points)
     if radius is None:
         spacing, _ = tree.query(points, k=2)
         radius = 3.0 * float(np.median(spacing[:, 1]))
     dist, _ = tree.query(vertices, k=1)
-    return dist <= radius
+    return dist, dist <= radius
 
 
 def visible_vertices(vertices: np.ndarray, faces: np.ndarray, camera: Camera, mask: np.ndarray | None = None

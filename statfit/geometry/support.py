@@ -13,15 +13,15 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from statfit.geometry.metrics import observed_vertices
+from statfit.geometry.metrics import nearest_point_distance
 from statfit.renderer import Camera, interpolate_fragments, rasterize
 
 
 def scan_support(vertices: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(N,) distance of each vertex (N, 3) to the nearest scan point (M, 3), and (N,) bool
     observed: within three median point spacings of a point (the rule of ``statfit eval --scan``)."""
-    distance, _ = cKDTree(points).query(vertices, k=1)
-    return distance.astype(np.float64), observed_vertices(vertices, points)
+    distance, observed = nearest_point_distance(vertices, points)
+    return distance.astype(np.float64), observed
 
 
 def view_support(vertices: np.ndarray, faces: np.ndarray, views: list[tuple[Camera, np.ndarray | None]]

@@ -18,6 +18,7 @@ import numpy as np
 
 from statfit.errors import StatfitError
 from statfit.geometry.align import Similarity
+from statfit.model.pca import fixed_signs
 from statfit.model.statmodel import StatModel
 
 
@@ -68,9 +69,7 @@ def off_span_summary(model: StatModel, off_span: np.ndarray) -> dict:
 def canonical_signs(model: StatModel) -> np.ndarray:
     """(K,) ±1 per mode: the sign that makes the mode's largest-magnitude basis entry positive. An
     SVD's signs may differ between LAPACK builds; coefficients times these do not."""
-    rows = np.abs(model.basis).argmax(axis=0)
-    signs = np.sign(model.basis[rows, np.arange(model.num_modes)])
-    return np.where(signs == 0, 1.0, signs)
+    return fixed_signs(model.basis.T)
 
 
 def model_fingerprint(model: StatModel) -> dict:

@@ -71,8 +71,14 @@ def principal_components(samples: np.ndarray, k: int, *, randomized: bool | None
 
 def with_fixed_signs(directions: np.ndarray) -> np.ndarray:
     """``directions`` (K, D), each row's sign flipped so that its largest-magnitude entry is positive."""
-    rows = np.arange(len(directions))
-    return directions * np.sign(directions[rows, np.abs(directions).argmax(axis=1)])[:, None]
+    return directions * fixed_signs(directions)[:, None]
+
+
+def fixed_signs(directions: np.ndarray) -> np.ndarray:
+    """(K,) ±1: the sign of each row of ``directions`` (K, D) at its largest-magnitude entry (+1 for a
+    zero row), so that SVDs of different LAPACK builds agree once multiplied by it."""
+    signs = np.sign(directions[np.arange(len(directions)), np.abs(directions).argmax(axis=1)])
+    return np.where(signs == 0, 1.0, signs)
 
 
 def _randomized_svd(a: np.ndarray, k: int, rng: np.random.Generator,
