@@ -88,6 +88,16 @@ def test_model_cut_writes_a_face_mask_and_refuses_a_missing_region(tmp_path, emb
     assert np.allclose(mask.template, 1000 * embedded_model.template[np.unique(mask_vertices(embedded_model))])
     code, out = run_cli(["model", "cut", str(source), "--region", "ears", "-o", str(tmp_path / "no.npz")])
     assert code == 2 and "no region 'ears'" in out and not (tmp_path / "no.npz").exists()
+    (tmp_path / "empty.npz").write_bytes(b"")
+    (tmp_path / "junk.npz").write_bytes(b"not a model at all")
+    for argv, says in (([str(tmp_path / "missing.npz")], "not found"), ([str(tmp_path / "empty.npz")], "empty"),
+                       ([str(tmp_path / "junk.npz")], "unknown model format"),
+                       ([str(source), "--vertices", "3"], "≥ 4"), ([str(source), "--scale", "nan"], "finite")):
+        code, out = run_cli(["model", "cut", *argv, "-o", str(tmp_path / "no.npz")])
+        lines = out.strip().splitlines()
+        assert code == 2 and len(lines) == 1 and says in lines[0] and not (tmp_path / "no.npz").exists(), (argv, out)
+    code, out = run_cli(["model", "cut", str(source), "-o", str(source)])
+    assert code == 2 and "overwrite an input" in out
 
 
 @pytest.mark.parametrize("seed,units,clutter", [(0, "mm", 0.5), (1, "cm", 0.0), (2, "m", 0.5)])
