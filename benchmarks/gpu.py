@@ -89,6 +89,18 @@ def timed(fit, device: str):
     return result, time.perf_counter() - start
 
 
+def report(rows: dict[str, object], out: Path | None) -> None:
+    """The rows so far as a markdown table on stdout, and as JSON in ``out``: written after every
+    section, so a run stopped by its time limit still leaves what it measured."""
+    width = max(len(key) for key in rows)
+    print(f"| {'measure':<{width}} | value |\n|{'-' * (width + 2)}|---|")
+    for key, value in rows.items():
+        shown = f"{value:.3g}" if isinstance(value, float) else "-" if value is None else str(value)
+        print(f"| {key:<{width}} | {shown} |", flush=True)
+    if out:
+        out.write_text(json.dumps(rows, indent=1))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -122,6 +134,8 @@ def main() -> None:
     rows["render ops/it"], rows["render waits/it"] = per_iteration(
         lambda it: statfit.reconstruct(embedded, normal_map, camera, "statistical", preset="paper", align="none",
                                        device=device, iterations=it).iterations)
+    if args.out:
+        args.out.write_text(json.dumps(rows, indent=1))
 
     ict = load_model(ICT_MODEL)
     scan = scan_case("jaw-open")
@@ -150,6 +164,8 @@ def main() -> None:
         rows[f"{name}: ms/it"] = 1e3 * per_iteration_s
         rows[f"{name}: set-up s"] = short_seconds - short.iterations * per_iteration_s
         print(f"{name}: {seconds:.2f} s, {1e3 * per_iteration_s:.2f} ms/it", file=sys.stderr, flush=True)
+        if args.out:
+            args.out.write_text(json.dumps(rows, indent=1))
 
     count = 4 if args.quick else 16
     scans = []
@@ -164,13 +180,7 @@ def main() -> None:
     synchronize(device)
     rows[f"register default, {count} scans one after another: fits/s"] = count / (time.perf_counter() - start)
 
-    width = max(len(key) for key in rows)
-    print(f"| {'measure':<{width}} | value |\n|{'-' * (width + 2)}|---|")
-    for key, value in rows.items():
-        shown = f"{value:.3g}" if isinstance(value, float) else "-" if value is None else str(value)
-        print(f"| {key:<{width}} | {shown} |")
-    if args.out:
-        args.out.write_text(json.dumps(rows, indent=1))
+    report(rows, args.out)
 
 
 if __name__ == "__main__":

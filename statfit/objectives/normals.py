@@ -28,8 +28,12 @@ class NormalMapObjective:
 
     Rendered by :class:`statfit.renderer.steady.SteadyRenderer` (static shapes, no host reads in the
     steady state); the normal term is evaluated on the covered pixels only, the silhouette term over
-    the whole (padded) image.
+    the whole (padded) image. Non-finite vertices cover no pixel and give a non-finite loss, which
+    the loop's record step finds: its divergence check waits for the device at records only
+    (``deferred_checks``).
     """
+
+    deferred_checks = True
 
     def __init__(self, normals: torch.Tensor, mask: torch.Tensor, camera: Camera, faces: torch.Tensor,
                  silhouette_weight: float = SILHOUETTE_WEIGHT, adjacency: MeshAdjacency | None = None,

@@ -211,7 +211,7 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
             objective = WithLandmarks(objective, LandmarkObjective(
                 torch.as_tensor(model.landmarks[present], device=torch_device),
                 torch.as_tensor(targets, dtype=dtype, device=torch_device), landmark_weight))
-        timer = timer or StageTimer(sync=torch_device.type == "cuda")
+        timer = timer or StageTimer.for_device(torch_device)
         def to_scan_frame(x: torch.Tensor) -> np.ndarray:
             return transform.apply(frame.from_unit(x.detach().cpu().double().numpy()))
 

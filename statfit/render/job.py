@@ -189,7 +189,7 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
         region_faces = None if region is None else torch.as_tensor(region_triangles(model, region),
                                                                    device=torch_device)
         adjacency = MeshAdjacency.from_faces(faces)
-        timer = timer or StageTimer(sync=torch_device.type == "cuda")
+        timer = timer or StageTimer.for_device(torch_device)
         pose = Similarity()
         if align != "none":
             with timer("alignment"):

@@ -140,7 +140,7 @@ def fit_views(model: StatModel, views: list[View], method: str = "default", *, p
             splats.colour_logit.copy_(starting_colours(splats, x0, training))
         objective = ImageObjective(training, splats, views_per_step=views_per_step, mask_weight=mask_weight,
                                    seed=seed)
-        timer = timer or StageTimer(sync=torch_device.type == "cuda")
+        timer = timer or StageTimer.for_device(torch_device)
 
         def to_world(x: torch.Tensor) -> np.ndarray:
             return frame.from_unit(x.detach().cpu().double().numpy())
