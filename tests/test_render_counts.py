@@ -64,9 +64,10 @@ def _per_iteration(run, short: int, long: int) -> tuple[float, float, float]:
 
 
 def test_the_objective_runs_without_host_waits_in_few_ops(embedded_model):
-    """One objective evaluation and its backward (64² map): measured 2026-11-26 at 694 ops (the
+    """One objective evaluation and its backward (64² map): measured 2026-11-26 at 743 ops (the
     general rasteriser's path: ~990, 13 host waits) and 1/16 host reads (the renderer's overflow
-    check, every 16th call)."""
+    check, every 16th call). 694 before the per-pixel normals were set up per triangle: 49 ops
+    more (triangle-sized) for 13–17% less time a call at 512² on one CPU thread."""
     normal_map, camera = _scene(embedded_model)
     target = camera_space_normals(normal_map, camera)
     faces = torch.as_tensor(embedded_model.faces, dtype=torch.long)
@@ -81,13 +82,14 @@ def test_the_objective_runs_without_host_waits_in_few_ops(embedded_model):
 
     ops, waits, _ = _per_iteration(run, 16, 48)
     assert waits <= 0.1, waits
-    assert ops <= 720, ops
+    assert ops <= 750, ops
 
 
 def test_a_render_iteration_counts(embedded_model):
     """`reconstruct` (paper statistical, --align none): ops per iteration, and no host wait asked by
     the renderer or the objective beyond the overflow check. Measured 2026-11-26 (64² here; 729 at
-    256² as sync_count.py counts, from 1,030): 729 ops per iteration in all — the issue's target of
+    256² as sync_count.py counts, from 1,030): 766 ops per iteration in all (729 before the
+    per-triangle set-up of the pixel normals) — the issue's target of
     150 is NOT reached (the loop's own ~40, ~620 forward and ~70 backward ops of the render) — and
     0.06 waits per iteration in all (the renderer's overflow check every 16th call; 1.3 before the
     normal-map objective deferred the loop's finiteness test to its record steps)."""
@@ -100,4 +102,4 @@ def test_a_render_iteration_counts(embedded_model):
     ops, waits, render_waits = _per_iteration(run, 20, 52)
     assert render_waits <= 0.1, (render_waits, waits)
     assert waits <= 0.1, waits
-    assert ops <= 760, ops
+    assert ops <= 775, ops

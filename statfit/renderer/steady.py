@@ -24,9 +24,10 @@ Images are flat over the pixels of the image padded by one pixel on every side (
 need a bounds test), then one dump slot that masked lanes write into (and its neighbours).
 
 The z-buffer and the pairs are those of the general functions (the same row spans and depth keys:
-the same triangle per pixel); the normals are evaluated from the edge functions at the pixel
-centres (not from per-triangle planes) and the blends summed in another order, so values differ
-at float rounding (float64: ~1e-14 relative, gradients included).
+the same triangle per pixel); the normals are the edge functions' sum, set up per triangle as an
+affine function of the pixel centre's offset from the triangle's first corner (not from the
+barycentric planes), and the blends are summed in another order, so values differ at float
+rounding (float64: within 1e-10, gradients included: tests/test_steady_renderer.py).
 """
 from __future__ import annotations
 
@@ -77,12 +78,13 @@ class SteadyRenderer:
         self._corners = corners                                        # (3F,) corner-major
         self._gather = torch.cat([corners, adjacency.opposite.T.reshape(-1)])     # corners, then opposites
         padded = torch.cat([faces, faces.new_zeros(1, 3)])             # triangle F: none (vertex 0 thrice)
-        self._faces = padded                                            # (F+1, 3)
+        self._padded_corners = padded.T.reshape(-1)                    # (3(F+1),) corner-major
         # Endpoints of edge e (corner e+1 → e+2) of triangle t at row 3t + e.
         self._edge_ends = torch.stack([padded.roll(-1, 1), padded.roll(-2, 1)], dim=2).reshape(-1, 2)
         neighbor = torch.cat([torch.where(adjacency.neighbor < 0, count, adjacency.neighbor),
                               torch.full((1, 3), count, **long)])          # (F+1, 3), none → F
-        self._neighbor_t = neighbor.T.contiguous()
+        self._neighbor_t = neighbor.T.int().contiguous()                    # (3, F+1) int32
+        self._neighbor_flat = neighbor.T.reshape(-1).contiguous()             # (3(F+1),) edge-major
         second = neighbor.index_select(0, neighbor.reshape(-1)).view(-1, 9)
         # The triangles within two edge steps: self, across edge e (1 + e), then across its edge f (4 + 3e + f).
         self._ring = torch.cat([torch.arange(count + 1, **long)[:, None], neighbor, second], dim=1).contiguous()
@@ -97,7 +99,7 @@ class SteadyRenderer:
         self._before = torch.tensor([[0], [1], [0], [1]], **long)     # the neighbour comes first in the pair
         self._axis = torch.tensor([0, 0, 1, 1, 0], **long)
         self._direction = torch.tensor([1.0, -1.0, 1.0, -1.0, 1.0], dtype=dtype, device=device)
-        self._axis_rows = torch.tensor([0, 0, 1, 1], **long)
+        self._axis_bits = torch.tensor([[0], [0], [1], [1]], dtype=torch.uint8, device=device)  # code bit
         self._low = 0 if sys.byteorder == "little" else 1
         self._sizes: dict[str, int] = {}
         self._aranges: dict = {}
@@ -151,8 +153,10 @@ class SteadyRenderer:
             corner_j, corner_k = corner.roll(-1, 1), corner.roll(-2, 1)
             keys, area2, raster_need = self._zbuffer(corner)
             flags = _silhouette_flags(corner_j, corner_k, opposite, area2)               # (2, 3, F)
+            # Per triangle edge: the neighbour across it × 4 + 2 · (silhouette, steep) + (silhouette, flat).
+            facts = torch.nn.functional.pad(flags[0].int().mul_(2).add_(flags[1].int()), (0, 1))
             walk = (torch.nn.functional.pad(corner[:2].reshape(6, count), (0, 1)),      # corner x, y rows
-                    torch.cat([torch.nn.functional.pad(flags.view(6, count), (0, 1)).long(), self._neighbor_t]))
+                    facts.add_(self._neighbor_t, alpha=4))                               # (3, F+1) int32
             words = keys.view(torch.int32).view(-1, 2)
             triangle = words[:, self._low].long().remainder_(count + 1)                 # background → F
             covered = triangle < count
@@ -165,7 +169,10 @@ class SteadyRenderer:
             pairs, pair_need = self._pairs(keys, pixel, face, flags, walk)
             self._check(torch.cat([raster_need, running[-1:], pair_need]))
         data = torch.cat([screen.T, depth.T, normals])                                  # (6, N)
-        pixel_normals = _PixelNormals.apply(data, face, self._faces, self._centre.index_select(1, pixel), sign)
+        with torch.no_grad():
+            first = torch.nn.functional.pad(corner[:2, 0], (0, 1)).index_select(1, face)  # (2, M)
+            offset = self._centre.index_select(1, pixel) - first
+        pixel_normals = _PixelNormals.apply(data, face, self._padded_corners, offset, sign)
         target, source, weight = self._crossings(screen, pairs)
         with torch.no_grad():
             slot = slot.index_select(0, torch.cat([target, source])).view(2, -1)         # dump: M
@@ -248,16 +255,20 @@ class SteadyRenderer:
         pixel centre (2, K), the triangle and edge crossed, and whether the slot holds such a pair
         (K,); and the buffers' needs (2,). No gradient."""
         count = self.count
-        code = torch.nn.functional.pad(flags.any(dim=1), (0, 1))                      # (2, F+1)
-        code = code.index_select(1, self._ring.view(-1)).view(2, count + 1, -1).any(dim=2)
+        # Bit c of a triangle's code: a silhouette edge of class c (0 steep, 1 flat) lies within two
+        # edge steps of it (two rounds of or-ing the neighbours' codes).
+        flags = flags.any(dim=1).to(torch.uint8)                                        # (2, F)
+        code = torch.nn.functional.pad(flags[0].bitwise_or_(flags[1] << 1), (0, 1))    # (F+1,)
+        for _ in range(2):
+            around = code.index_select(0, self._neighbor_flat).view(3, -1)
+            code = around[0] | around[1] | around[2] | code
         # Only the covered pixels whose triangle lies within two edge steps of a silhouette edge
         # start a pair: those, into a buffer of their own (dump: the dump pixel, triangle F).
-        near = code.any(dim=0).index_select(0, face)
+        near = code.index_select(0, face) != 0
         lane, running = self._select(near, "edges")
         pixel = torch.nn.functional.pad(pixel, (0, 1), value=self.pixels).index_select(0, lane)
         face = torch.nn.functional.pad(face, (0, 1), value=count).index_select(0, lane)
         edges_need, slots_m = running[-1], len(lane)
-        code = code.index_select(0, self._axis_rows)                                    # (4, F+1) per direction
         key_p = keys.index_select(0, pixel)                                             # (M,)
         neighbour = pixel + self._offset[:4, None]                                      # (4, M)
         key_q = keys.index_select(0, neighbour.view(-1)).view(4, -1)
@@ -265,7 +276,7 @@ class SteadyRenderer:
         front = (key_q >> 32) > ((key_p >> 32) - self._before)
         differ = (key_q & _LOW32) != (key_p & _LOW32)
         found = front & differ & self._in_image.index_select(0, neighbour.view(-1)).view(4, -1)
-        found &= code.index_select(1, face)
+        found &= (code.index_select(0, face) >> self._axis_bits).bitwise_and_(1) != 0
         chosen, running = self._select(found.view(-1), "pairs")                        # 4M: masked
         lanes = 4 * slots_m
         direction_id = chosen.div(slots_m, rounding_mode="floor")                      # 4: masked
@@ -286,8 +297,8 @@ class SteadyRenderer:
         """Follow each pair's segment from its foreground pixel centre through up to 3 triangles to
         the first silhouette edge (as ``silhouette._walk``), evaluating the 13 triangles within two
         edge steps of the start at once. Returns the triangle and edge crossed and whether one of the
-        pair's direction class was found (K,). corner_table: (6, F+1) corner x, y; fact_table: (9, F+1)
-        silhouette flags h, v and the neighbour across each edge. No gradient."""
+        pair's direction class was found (K,). corner_table: (6, F+1) corner x, y; fact_table: (3, F+1)
+        int32 per edge: the neighbour across it × 4 + 2 h + v (the silhouette flags). No gradient."""
         count = self.count
         ring = self._ring.index_select(0, start)                                        # (K, 13)
         corners = corner_table.index_select(1, ring.view(-1)).view(2, 3, *ring.shape)
@@ -300,11 +311,10 @@ class SteadyRenderer:
         position = direction[:, None] * (aj * bk - ak * bj) / torch.where(crosses, bk - bj, 1.0)
         position, edge = torch.where(crosses, position, -torch.inf).max(dim=0)          # (K, 13)
         leaves = (position > -_EPS) & (position < 1 + _EPS)
-        facts = fact_table.index_select(1, ring.view(-1)).view(3, 3, *ring.shape)  # h, v, next × edge
-        h, v, nxt = facts.gather(1, edge[None, None].expand(3, 1, *ring.shape)).squeeze(1)
-        stop = leaves & ((h | v) != 0)
-        state = torch.stack([stop & (torch.where(horizontal, h, v) != 0),               # found here
-                             leaves & ~stop & (nxt < count), edge])                     # walk on; edge
+        facts = fact_table.index_select(1, ring.view(-1)).view(3, *ring.shape).gather(0, edge[None])[0]
+        stop = leaves & ((facts & 3) != 0)
+        state = torch.stack([stop & ((facts >> torch.where(horizontal, 1, 0)) & 1 != 0),  # found here
+                             leaves & ~stop & (facts < 4 * count), edge])               # walk on; edge
         first = state[:, :, 0]                                                          # (3, K)
         node = first[2] + 1
         second = state.gather(2, node[None, :, None].expand(3, -1, 1)).squeeze(2)

@@ -12,42 +12,53 @@ class _PixelNormals(torch.autograd.Function):
     where e_k are the edge functions at the pixel centre (the barycentrics × twice the signed
     area, so ``sign`` (M,) = the area's sign makes it the same for either winding).
 
+    The sum is affine in the pixel centre within a triangle, so it is set up per triangle, as
+    A + q_x B + q_y C with q the pixel centre less the triangle's first corner (A, B, C: (3,) each),
+    and each pixel gathers 9 numbers instead of its three corners' 18.
+
     data: (6, N) screen x, y, depth, normal x, y, z per vertex; face: (M,) the pixels' triangles
-    into faces (F+1, 3); centre: (2, M). Hand-written backward (a few large ops instead of
-    autograd's per-op graph) that sums the pixels' gradients per triangle, then per vertex: two
-    short scatters rather than one whose long runs of repeated vertices serialise under CUDA's
-    deterministic algorithms."""
+    into the triangles (F+1) whose corner-major vertex indices are ``corners`` (3(F+1),) (the last
+    triangle: none; it gets no gradient); offset: (2, M) each pixel centre less its triangle's
+    first corner (no gradient). Hand-written backward: the pixels' gradients summed per triangle
+    (9 numbers), then per vertex."""
 
     @staticmethod
-    def forward(ctx, data, face, faces, centre, sign):
-        corners = faces.index_select(0, face).T.reshape(-1)                            # corner-major (3M,)
-        at = data.index_select(1, corners).view(6, 3, -1)                               # (6, 3, M)
-        rel = at[:2] - centre[:, None]                                                  # (2, 3, M)
-        rel_j, rel_k = rel.roll(-1, 1), rel.roll(-2, 1)
-        edge = rel_j[0] * rel_k[1] - rel_k[0] * rel_j[1]                                # (3, M)
-        weight = edge / at[2]
-        summed = (at[3:] * weight).sum(dim=1)                                           # (3, M)
+    def forward(ctx, data, face, corners, offset, sign):
+        at = data.index_select(1, corners).view(6, 3, -1)                               # (6, 3, F+1)
+        rel = at[:2] - at[:2, :1]                                                       # x, y from corner 0
+        rel_j, rel_k = rel.roll(-1, 1), rel.roll(-2, 1)                                 # corners k+1, k+2
+        # e_k(q) = a_k + q_x (y_j − y_k) − q_y (x_j − x_k): terms a, x_j − x_k, y_j − y_k (3, 3, F+1)
+        terms = torch.cat([(rel_j[0] * rel_k[1] - rel_k[0] * rel_j[1])[None], rel_j - rel_k])
+        w = at[3:] / at[2]                                                              # n_k / z_k (3, 3, F+1)
+        planes = (w[None] * terms[:, None]).sum(dim=2)                                  # (3 terms, 3, F+1)
+        per_pixel = planes.view(9, -1).index_select(1, face).view(3, 3, -1)             # (3 terms, 3, M)
+        summed = torch.addcmul(per_pixel[0], per_pixel[2], offset[0]).addcmul_(per_pixel[1], offset[1], value=-1)
         scale = (summed * summed).sum(dim=0).clamp_min(torch.finfo(summed.dtype).tiny).rsqrt() * sign
         normals = summed * scale
-        ctx.save_for_backward(at, rel_j, rel_k, weight, normals, scale, face, faces)
+        ctx.save_for_backward(at, rel_j, rel_k, terms, w, normals, scale, face, corners, offset)
         ctx.vertices = data.shape[1]
         return normals
 
     @staticmethod
     def backward(ctx, grad):
-        at, rel_j, rel_k, weight, normals, scale, face, faces = ctx.saved_tensors
-        grads = at.new_empty(at.shape)                                                  # d/d at (6, 3, M)
+        at, rel_j, rel_k, terms, w, normals, scale, face, corners, offset = ctx.saved_tensors
         along = scale * (grad - normals * (normals * grad).sum(dim=0))                 # d/d summed (3, M)
-        torch.mul(along[:, None], weight, out=grads[3:])                                # the corner normals
-        grad_edge = (at[3:] * along[:, None]).sum(dim=0) / at[2]                        # (3, M)
-        torch.mul(grad_edge, weight, out=grads[2]).neg_()                               # the corner depths
-        # e_k = X_{k+1} Y_{k+2} − X_{k+2} Y_{k+1} with X, Y relative to the pixel centre.
-        edge_1, edge_2 = grad_edge.roll(1, 0), grad_edge.roll(2, 0)
-        torch.mul(edge_1, rel_j[1], out=grads[0]).sub_(edge_2 * rel_k[1])
-        torch.mul(edge_2, rel_k[0], out=grads[1]).sub_(edge_1 * rel_j[0])
-        per_triangle = grads.new_zeros(18, len(faces)).index_add_(1, face, grads.view(18, -1))
-        grad_data = grads.new_zeros(6, ctx.vertices).index_add_(1, faces.T.reshape(-1), per_triangle.view(6, -1))
+        per_pixel = torch.cat([along, along * offset[1], along * offset[0]])            # d/d planes (9, M)
+        per_pixel[3:6].neg_()
+        planes = per_pixel.new_zeros(9, w.shape[2]).index_add_(1, face, per_pixel).view(3, 3, 1, -1)
+        grad_w = (planes * terms[:, None]).sum(dim=0)                                   # (3, 3, F+1)
+        grad_a, grad_d = (planes * w[None]).sum(dim=1).split([1, 2])                    # (1 | 2, 3, F+1)
+        # a = x_j y_k − x_k y_j; d = rel_j − rel_k; perp(v) = (v_y, −v_x).
+        grad_j = torch.addcmul(grad_d, grad_a, rel_k.flip(0) * _PERP.to(rel_k))
+        grad_k = torch.addcmul(grad_d, grad_a, rel_j.flip(0) * _PERP.to(rel_j)).neg_()
+        grad_rel = grad_j.roll(1, 1).add_(grad_k.roll(2, 1))                            # (2, 3, F+1)
+        grads = torch.cat([grad_rel, -(grad_w * w).sum(dim=0, keepdim=True) / at[2], grad_w / at[2]])
+        grad_data = grads.new_zeros(6, ctx.vertices).index_add_(1, corners.view(3, -1)[:, :-1].reshape(-1),
+                                                                grads[..., :-1].reshape(6, -1))
         return grad_data, None, None, None, None
+
+
+_PERP = torch.tensor([1.0, -1.0]).view(2, 1, 1)
 
 
 class _CrossingWeights(torch.autograd.Function):
