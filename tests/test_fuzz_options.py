@@ -7,6 +7,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+import click
 import numpy as np
 import pytest
 import typer
@@ -73,6 +74,19 @@ def base_argv(command: tuple[str, ...], inputs: Path, out: Path) -> list[str]:
     }[command]
 
 
+def _number_kind(param) -> type | None:
+    """int or float for a numeric option, else None. Typer versions differ: up to 0.2x a click
+    parameter with a click type (``IntParamType``, ``FloatParamType``, their ranges); later ones
+    vendor click and keep the annotation in ``type_descriptor``."""
+    for cls in type(getattr(param, "type", None)).__mro__:
+        if cls is click.types.IntParamType:
+            return int
+        if cls is click.types.FloatParamType:
+            return float
+    kind = getattr(getattr(param, "type_descriptor", None), "annotation", None)
+    return kind if kind in (int, float) else None
+
+
 def numeric_options() -> list[tuple[tuple[str, ...], str, type]]:
     def walk(command, path=()):
         if hasattr(command, "commands"):
@@ -80,9 +94,10 @@ def numeric_options() -> list[tuple[tuple[str, ...], str, type]]:
                 yield from walk(sub, (*path, name))
         else:
             for param in command.params:
-                kind = getattr(getattr(param, "type_descriptor", None), "annotation", None)
-                if kind in (int, float) and getattr(param, "opts", None):
-                    yield path, param.opts[0], kind
+                if getattr(param, "param_type_name", None) == "option" and param.opts:
+                    kind = _number_kind(param)
+                    if kind is not None:
+                        yield path, param.opts[0], kind
 
     return list(walk(typer.main.get_command(app)))
 
