@@ -7,7 +7,6 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-import click
 import numpy as np
 import pytest
 import typer
@@ -75,14 +74,13 @@ def base_argv(command: tuple[str, ...], inputs: Path, out: Path) -> list[str]:
 
 
 def _number_kind(param) -> type | None:
-    """int or float for a numeric option, else None. Typer versions differ: up to 0.2x a click
-    parameter with a click type (``IntParamType``, ``FloatParamType``, their ranges); later ones
-    vendor click and keep the annotation in ``type_descriptor``."""
+    """int or float for a numeric option, else None. Typer versions differ: a click parameter type
+    (``IntParamType``, ``FloatParamType`` or their ranges; click's own, or the copy of click that
+    typer 0.2x vendors), or, in versions whose parameters carry no type, the annotation in
+    ``type_descriptor``."""
     for cls in type(getattr(param, "type", None)).__mro__:
-        if cls is click.types.IntParamType:
-            return int
-        if cls is click.types.FloatParamType:
-            return float
+        if cls.__name__ in ("IntParamType", "FloatParamType"):
+            return int if cls.__name__ == "IntParamType" else float
     kind = getattr(getattr(param, "type_descriptor", None), "annotation", None)
     return kind if kind in (int, float) else None
 
