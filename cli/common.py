@@ -51,7 +51,9 @@ MethodOption = typer.Option("default", help="default (the measured best pipeline
                             + ". register's pca is the closed-form Gauss-Newton fit alone; its default adds 200 hybrid steps."
                             " render's default: two hybrid stages, then the Laplacian filter (docs/studies.md §13).")
 PresetOption = typer.Option("tuned", help="tuned (our measured defaults) or paper (the paper's settings, exactly).")
-DeviceOption = typer.Option("cpu", envvar="STATFIT_DEVICE", help="auto, cpu or cuda (default: $STATFIT_DEVICE, else cpu).")
+DeviceOption = typer.Option("cpu", envvar="STATFIT_DEVICE", help="auto, cpu or cuda (default: $STATFIT_DEVICE, else cpu). auto: the GPU when "
+                            "there is one and the command is not measured faster on the CPU (register is: its "
+                            "fit waits on kernel launches), else the CPU.")
 ThreadsOption = typer.Option(None, help="CPU threads for the fit. Default: 1 for head-sized models (a second "
                              "thread gains little and stalls when the other core is busy); for large ones, the cores "
                              "idle when the fit starts.",

@@ -89,7 +89,7 @@ def register(
     stages = resolve(method, preset, **overrides)
     if landmark_weight is None:
         landmark_weight = method_landmark_weight(method)
-    torch_device = resolve_device(device)
+    torch_device = resolve_device(device, "register")
     if len(scans) > 1:
         raise StatfitError(f"{len(scans)} scans given; register fits one — for many, `statfit batch register SCANS "
                            "--out-dir DIR` (parallel, resumable, one failure does not stop the rest)")

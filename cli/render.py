@@ -87,7 +87,7 @@ def render(
     """
     overrides = setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain)
     stages = render_stages(method, preset, region, **overrides)
-    torch_device = resolve_device(device)
+    torch_device = resolve_device(device, "render")
     out = out or Path(f"{normal_map_path.stem}_fit.ply")
     if preview_colour not in PREVIEW_COLOURS:
         raise StatfitError(f"unknown --preview-colour {preview_colour!r}; choose one of {', '.join(PREVIEW_COLOURS)}")

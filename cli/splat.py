@@ -81,7 +81,7 @@ def splat(
         raise StatfitError(f"--per-triangle must be one of {', '.join(map(str, PATTERNS))}, got {per_triangle}")
     stages = splat_stages(method, preset, **setting_overrides(iterations, lr, beta, power, lam, laplacian,
                                                               mode_gain))
-    torch_device = resolve_device(device)
+    torch_device = resolve_device(device, "splat")
     if params is not None:
         params_suffix(params)
     for target in (out, splats_out, preview, log, params):

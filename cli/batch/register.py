@@ -76,5 +76,5 @@ def batch_register(
     items = prepared_inputs(inputs, out_dir)
     job = FitJob("register", model_file, k, stages, dict(align=align, region=region, refresh_every=refresh,
                                                          trim=trim, seed=seed, clutter=clutter_choice(clutter)),
-                 threads=threads, device=str(resolve_device(device)), model_digest=digest, params=params)
+                 threads=threads, device=str(resolve_device(device, "register")), model_digest=digest, params=params)
     run_fits(items, job, out_dir, workers, scheduler, cluster, timeout, force, quiet, json_out)

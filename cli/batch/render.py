@@ -86,5 +86,5 @@ def batch_render(
     job = FitJob("render", model_file, k, stages,
                  dict(camera=camera, align=align, normal_space=normal_space, normal_convention=normal_convention,
                       silhouette_weight=silhouette_weight, region=region, seed=seed),
-                 threads=threads, device=str(resolve_device(device)), model_digest=digest, params=params)
+                 threads=threads, device=str(resolve_device(device, "render")), model_digest=digest, params=params)
     run_fits(items, job, out_dir, workers, scheduler, cluster, timeout, force, quiet, json_out)

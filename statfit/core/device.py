@@ -13,11 +13,20 @@ DEVICE_ENV = "STATFIT_DEVICE"
 DETERMINISTIC_ENV = "STATFIT_DETERMINISTIC"
 
 
-def resolve_device(device: str | torch.device | None = None) -> torch.device:
-    """``cpu``, ``cuda`` or ``auto`` (CUDA when available); None: ``$STATFIT_DEVICE``, else the CPU."""
+# Where ``auto`` runs each job when a GPU is there: where it was measured faster (2026-11-26, an
+# NVIDIA H200 against one CPU core, ICT, docs/benchmarks.md §12). register's default fit took 3.75 s
+# on the GPU against 2.6 s (its loop waits on kernel launches, its set-up on the host): the CPU.
+# render's took 21.3 s against ~30 s: the GPU. Jobs not named (splat, inpaint; not measured on a
+# GPU yet) go to the GPU.
+AUTO_ON_GPU = {"register": False, "render": True}
+
+
+def resolve_device(device: str | torch.device | None = None, job: str | None = None) -> torch.device:
+    """``cpu``, ``cuda`` or ``auto``; None: ``$STATFIT_DEVICE``, else the CPU. ``auto``: CUDA when
+    available and :data:`AUTO_ON_GPU` has ``job`` (register, render, ...) faster there."""
     device = str(device or os.environ.get(DEVICE_ENV) or "cpu")
     if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        device = "cuda" if torch.cuda.is_available() and AUTO_ON_GPU.get(job or "", True) else "cpu"
     if device.split(":")[0] not in ("cpu", "cuda"):
         raise StatfitError(f"unknown device {device!r}; choose auto, cpu or cuda")
     if device.startswith("cuda") and not torch.cuda.is_available():

@@ -165,7 +165,7 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
     if not (np.isfinite(landmark_weight) and 0 <= landmark_weight <= 1e6):
         raise StatfitError(f"landmark_weight must be a finite number in [0, 1e6], got {landmark_weight}")
     stages = stages or resolve(method, preset, **overrides)
-    torch_device = resolve_device(device)
+    torch_device = resolve_device(device, "register")
     threads = choose_threads(model.basis.size, threads)
     with intra_op_threads(threads):
         torch.manual_seed(seed)

@@ -170,7 +170,7 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
     if not (np.isfinite(silhouette_weight) and silhouette_weight >= 0):
         raise StatfitError(f"silhouette_weight must be a finite number ≥ 0, got {silhouette_weight}")
     stages = stages or render_stages(method, preset, region, **overrides)
-    torch_device = resolve_device(device)
+    torch_device = resolve_device(device, "render")
     work = model.basis.size + RENDER_FLOATS_PER_PIXEL * normal_map.mask.size
     threads = choose_threads(work, threads)
     with intra_op_threads(threads):

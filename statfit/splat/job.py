@@ -123,7 +123,7 @@ def fit_views(model: StatModel, views: list[View], method: str = "default", *, p
         raise StatfitError(f"views per step must be from 1 to the {len(train)} training views, got {views_per_step}")
     stages = stages or splat_stages(method, preset, **overrides)
     check_views_see(model.template, views)
-    torch_device = resolve_device(device)
+    torch_device = resolve_device(device, "splat")
     work = model.basis.size + SPLAT_FLOATS_PER_PIXEL * train[0].image.shape[0] * train[0].image.shape[1]
     threads = choose_threads(work, threads)
     with intra_op_threads(threads):

@@ -1,0 +1,43 @@
+"""Which device a job runs on: ``auto`` follows the measured rule (statfit.core.device.AUTO_ON_GPU)."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+import statfit.core.device as device_module
+from statfit.core.device import resolve_device
+from statfit.errors import StatfitError
+
+
+@pytest.fixture
+def a_gpu(monkeypatch):
+    """A machine that reports a CUDA device (without making this process's CUDA state deterministic)."""
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(device_module, "same_seed_same_bytes", lambda: None)
+
+
+def test_auto_sends_render_to_the_gpu_and_keeps_register_on_the_cpu(a_gpu):
+    assert resolve_device("auto", "render").type == "cuda"
+    assert resolve_device("auto", "register").type == "cpu"
+    assert resolve_device("auto", "splat").type == "cuda"       # not measured: the GPU
+    assert resolve_device("cuda", "register").type == "cuda"    # asked for by name: always
+
+
+def test_auto_without_a_gpu_is_the_cpu(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert resolve_device("auto", "render").type == "cpu"
+    with pytest.raises(StatfitError, match="no CUDA device"):
+        resolve_device("cuda", "render")
+
+
+def test_auto_on_a_gpu_makes_cuda_deterministic(monkeypatch):
+    calls = []
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(device_module, "same_seed_same_bytes", lambda: calls.append(1))
+    resolve_device("auto", "render")
+    assert calls == [1]
+
+
+def test_an_unknown_device_is_refused():
+    with pytest.raises(StatfitError, match="unknown device"):
+        resolve_device("tpu")
