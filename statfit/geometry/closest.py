@@ -86,9 +86,10 @@ def _closest_in_triangle_vw(d20: torch.Tensor, d21: torch.Tensor, dpp: torch.Ten
     sq = dpp - 2 * (vs * d20 + ws * d21) + vs * vs * d00 + 2 * vs * ws * d01 + ws * ws * d11   # (4, ...)
     sq[0].masked_fill_(outside, torch.inf)
     sq.nan_to_num_(nan=torch.inf, posinf=torch.inf)
-    best = sq.argmin(dim=0, keepdim=True)                # the first nearest, as trying them in turn
-    v, w, sq = torch.stack([vs, ws, sq]).gather(1, best[None].expand(3, -1, *best.shape[1:]))[:, 0].unbind(0)
-    return v, w, sq.clamp_min(0)
+    # The first nearest, as trying them in turn (``min`` over a leading dimension: ``argmin`` there
+    # is ~7x slower on a CPU, and the minimum's value comes with its index).
+    sq, best = sq.min(dim=0, keepdim=True)
+    return vs.gather(0, best)[0], ws.gather(0, best)[0], sq[0].clamp_min(0)
 
 
 def open_edges(faces: torch.Tensor) -> torch.Tensor:
