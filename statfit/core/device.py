@@ -14,10 +14,10 @@ DETERMINISTIC_ENV = "STATFIT_DETERMINISTIC"
 
 
 # Where ``auto`` runs each job when a GPU is there: where it was measured faster (2026-11-26, an
-# NVIDIA H200 against one CPU core, ICT, docs/benchmarks.md §12). register's default fit took 3.75 s
-# on the GPU against 2.6 s (its loop waits on kernel launches, its set-up on the host): the CPU.
-# render's took 21.3 s against ~30 s: the GPU. Jobs not named (splat, inpaint; not measured on a
-# GPU yet) go to the GPU.
+# NVIDIA H200, ICT, docs/benchmarks.md §12). register's default fit took 3.75 s on the GPU, no faster
+# than one CPU core (2.6–4.2 s; its loop waits on kernel launches, its set-up runs on the host): the
+# CPU. render's took 21.3 s against ~30 s: the GPU. Jobs not named (splat, inpaint; not measured on
+# a GPU yet) go to the GPU.
 AUTO_ON_GPU = {"register": False, "render": True}
 
 
