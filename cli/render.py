@@ -6,7 +6,7 @@ from pathlib import Path
 import typer
 
 from statfit.errors import StatfitError
-from statfit.render.job import camera_space_normals, reconstruct, render_stages
+from statfit.render.job import camera_space_normals, reconstruct, render_stages, silhouette_sides
 from statfit.io.image import read_mask
 from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_mesh
 from statfit.io.normalmap import apply_mask, camera_for_map, read_normal_map
@@ -55,6 +55,10 @@ def render(
                               show_default=False),
     silhouette_weight: float = typer.Option(SILHOUETTE_WEIGHT, help="Weight of the silhouette term (0: off).",
                                             callback=within(0, 1e6)),
+    silhouette: str = typer.Option("auto", help="The silhouette term: two-sided (the model's outline matches the "
+                                   "map's mask), one-sided (only model outside the mask counts: a model of part of "
+                                   "what the map shows, e.g. a face mask in a photo of a head) or auto (one-sided "
+                                   "for a model whose surface faces one way, as a face mask's does)."),
     region: str = typer.Option(None, "--region", help="Fit only the model's region NAME (e.g. face): after the "
                                "alignment, only pixels showing the region's triangles count and the silhouette is "
                                "not used; the rest of the mesh follows the model's prior.", show_default=False),
@@ -110,13 +114,13 @@ def render(
                   modes=model.num_modes, input=str(normal_map_path), camera=camera.to_dict(),
                   pixels=int(normal_map.mask.sum()), align=align, init=str(init) if init else None,
                   normal_space=normal_space, normal_convention=normal_convention,
-                  silhouette_weight=silhouette_weight, region=region, device=str(torch_device), threads=threads,
-                  seed=seed)
+                  silhouette_weight=silhouette_weight, silhouette=silhouette_sides(silhouette, model), region=region,
+                  device=str(torch_device), threads=threads, seed=seed)
     with fit_run("render", log, normal_map_path.name, sum(s.iterations for s in stages), quiet, **header) as run:
         result = reconstruct(model, normal_map, camera, stages=stages, normal_space=normal_space,
                              normal_convention=normal_convention, align=align, init=start,
                              device=str(torch_device), silhouette_weight=silhouette_weight, seed=seed,
-                             on_record=run.on_record, region=region, threads=threads)
+                             on_record=run.on_record, region=region, threads=threads, silhouette=silhouette)
     summary = {"input": str(normal_map_path), "output": str(out), "method": method, "iterations": result.iterations,
                "final_loss": result.loss, "seconds": result.seconds, "threads": result.threads,
                "stage_seconds": result.stage_seconds, "model_to_world": result.transform.as_matrix().tolist()}

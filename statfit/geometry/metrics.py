@@ -41,6 +41,16 @@ def visible_vertices(vertices: np.ndarray, faces: np.ndarray, camera: Camera, ma
     return visible
 
 
+def facing_share(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """|Σ area-weighted triangle normals| / total area of the mesh (vertices (N, 3), faces (F, 3)):
+    0 for a closed surface, 0.5 for a hemisphere shell, 1 for a flat sheet. A face mask (the front
+    of a face only) is ~0.45; heads cut at the neck, ~0.05–0.2."""
+    corners = np.asarray(vertices, dtype=np.float64)[np.asarray(faces)]
+    doubled = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])   # 2 · area · normal
+    total = np.linalg.norm(doubled, axis=1).sum()
+    return float(np.linalg.norm(doubled.sum(axis=0)) / total) if total > 0 else 0.0
+
+
 def surface_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Distance of each of ``points`` (M, 3) to the surface (``vertices``, ``faces``), (M,)."""
     query = ClosestPointQuery(faces, len(vertices), k=12)

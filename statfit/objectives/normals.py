@@ -8,7 +8,9 @@ the torso as well as the body's against the background (as nvdiffrast antialiase
 image; plain rasterisation gives an edge inside the mask no gradient, so a normal map could only
 bend a misplaced limb, never move it: docs/studies.md §13).
 silhouette: ``Σ (m − m̂)² / |target|`` over all pixels, where ``m`` is the rendered coverage
-antialiased at silhouette edges (its only gradients), ``m̂`` the target mask.
+antialiased at silhouette edges (its only gradients), ``m̂`` the target mask; one-sided,
+``Σ max(m − m̂, 0)² / |target|``: only coverage outside the target counts (for a model of part of
+what the map shows, a face mask in a map of a head, whose outline is not the subject's).
 The total is ``normal + silhouette_weight · silhouette``. Visibility is recomputed every call.
 With a region (a mask over triangles), the normal term counts only the pixels that show a region
 triangle.
@@ -37,15 +39,16 @@ class NormalMapObjective:
 
     def __init__(self, normals: torch.Tensor, mask: torch.Tensor, camera: Camera, faces: torch.Tensor,
                  silhouette_weight: float = SILHOUETTE_WEIGHT, adjacency: MeshAdjacency | None = None,
-                 region_faces: torch.Tensor | None = None):
+                 region_faces: torch.Tensor | None = None, one_sided: bool = False):
         """normals: (H, W, 3) target unit normals in camera space; mask: (H, W) bool target
         coverage; faces: (F, 3) long on the normals' device; adjacency: ``MeshAdjacency.from_faces(faces)``,
         pass it to share it between objectives; region_faces: (F,) bool, the triangles whose pixels
-        the normal term uses (all when None)."""
+        the normal term uses (all when None); one_sided: the one-sided silhouette term."""
         self.mask = mask.to(normals.dtype)
         self.camera = camera
         self.faces = faces
         self.silhouette_weight = silhouette_weight
+        self.one_sided = one_sided
         self.adjacency = adjacency if adjacency is not None else MeshAdjacency.from_faces(faces)
         self.count = float(mask.sum())
         self.region_faces = region_faces
@@ -87,6 +90,8 @@ class NormalMapObjective:
         terms = {"normal": normal}
         if self.silhouette_weight:
             coverage = view.blended_coverage(len(self.faces), vertices.dtype)[:pixels]
-            terms["silhouette"] = (coverage - self._target[3, :pixels]).square().sum() * (
-                self.silhouette_weight / self.count)
+            difference = coverage - self._target[3, :pixels]
+            if self.one_sided:
+                difference = difference.clamp_min(0.0)
+            terms["silhouette"] = difference.square().sum() * (self.silhouette_weight / self.count)
         return terms

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from statfit.geometry.align import Similarity, compose
+from statfit.geometry.metrics import facing_share
 from statfit.errors import StatfitError
 from statfit.core.fit import StageTimer
 from statfit.structures.frame import UNIT_MISMATCH_FACTOR, Frame
@@ -37,6 +38,11 @@ from statfit.core.threads import choose_threads, intra_op_threads
 
 ALIGNMENTS = ("none", "rigid", "similarity")
 NORMAL_SPACES = ("world", "camera")
+SILHOUETTES = ("auto", "two-sided", "one-sided")
+# A model whose surface, summed, faces one way by more than this share of its area is of part of the
+# subject (a face mask: ~0.45; heads cut at the neck: 0.06-0.18): `auto` gives it the one-sided
+# silhouette term (docs/studies.md §18: the mask fitted to whole-head maps 1.7-2x closer).
+PARTIAL_FACING_SHARE = 0.3
 NORMAL_CONVENTIONS = ("opencv", "opengl")
 POSE_ITERATIONS = 200
 POSE_LR = 0.01
@@ -152,7 +158,7 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
                 on_record: Callable[[int, dict[str, float]], None] | None = None,
                 timer: StageTimer | None = None, stages: tuple[Settings, ...] | None = None,
                 region: str | None = None, on_snapshot: Callable[[int, np.ndarray], None] | None = None,
-                threads: int | None = None, **overrides: Any) -> Fit:
+                threads: int | None = None, silhouette: str = "auto", **overrides: Any) -> Fit:
     """Fit ``model`` to ``normal_map`` seen by ``camera`` with ``method``.
 
     ``init`` (N, 3): start from these vertices (world frame) instead of the template.
@@ -163,8 +169,11 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
     iterations of the fit (e.g. to trace the error against a ground truth). ``threads``: torch
     intra-op threads (default: chosen from the model's and the map's sizes, :mod:`statfit.core.threads`).
     ``overrides`` replace the method's settings (see :func:`statfit.core.methods.resolve`); ``stages``
-    replaces the method by an explicit pipeline.
+    replaces the method by an explicit pipeline. ``silhouette``: ``two-sided`` (the coverage matches
+    the map's mask), ``one-sided`` (only coverage outside the mask counts: for a model of part of the
+    subject) or ``auto``: one-sided for a model whose surface faces one way (:func:`one_sided_silhouette`).
     """
+    one_sided = silhouette_sides(silhouette, model) == "one-sided"
     if align not in ALIGNMENTS:
         raise StatfitError(f"unknown alignment {align!r}; choose one of {', '.join(ALIGNMENTS)}")
     if not (np.isfinite(silhouette_weight) and silhouette_weight >= 0):
@@ -196,10 +205,11 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
                 unit_camera = camera_in_frame(camera, frame)
                 guess = _centring_guess(x0, faces, unit_camera, normal_map.mask, align == "similarity")
                 coarse = NormalMapObjective(*downsampled(target, mask, unit_camera, ALIGN_SIZE), faces,
-                                            silhouette_weight, adjacency)
+                                            silhouette_weight, adjacency, one_sided=one_sided)
                 pose, x0 = _align(x0, coarse, space, guess, align == "similarity", unit_camera.rotation[2].to(dtype))
         objective = NormalMapObjective(target, mask, camera_in_frame(camera, frame, pose), faces,
-                                       silhouette_weight if region is None else 0.0, adjacency, region_faces)
+                                       silhouette_weight if region is None else 0.0, adjacency, region_faces,
+                                       one_sided)
         def to_world(x: torch.Tensor) -> np.ndarray:
             return frame.from_unit(pose.apply(x.detach().cpu().double().numpy()))
 
@@ -210,6 +220,21 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
         from_unit = Similarity(frame.scale, np.eye(3), frame.center)
         return Fit(vertices, compose(from_unit, compose(pose, to_unit)), stages, result.loss,
                               time.perf_counter() - started, dict(timer.seconds), result.iterations, threads=threads)
+
+
+def silhouette_sides(silhouette: str, model: StatModel) -> str:
+    """``silhouette`` (auto, two-sided, one-sided) as the term ``model`` gets: auto resolved."""
+    if silhouette not in SILHOUETTES:
+        raise StatfitError(f"unknown silhouette {silhouette!r}; choose one of {', '.join(SILHOUETTES)}")
+    if silhouette == "auto":
+        return "one-sided" if one_sided_silhouette(model) else "two-sided"
+    return silhouette
+
+
+def one_sided_silhouette(model: StatModel) -> bool:
+    """Whether ``auto`` gives ``model`` the one-sided silhouette: its mean shape faces one way by more
+    than :data:`PARTIAL_FACING_SHARE` of its area (:func:`statfit.geometry.metrics.facing_share`)."""
+    return facing_share(model.template, model.faces) > PARTIAL_FACING_SHARE
 
 
 def downsampled(normals: torch.Tensor, mask: torch.Tensor, camera: Camera, size: int
