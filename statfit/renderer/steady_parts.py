@@ -49,8 +49,8 @@ class _PixelNormals(torch.autograd.Function):
         grad_w = (planes * terms[:, None]).sum(dim=0)                                   # (3, 3, F+1)
         grad_a, grad_d = (planes * w[None]).sum(dim=1).split([1, 2])                    # (1 | 2, 3, F+1)
         # a = x_j y_k − x_k y_j; d = rel_j − rel_k; perp(v) = (v_y, −v_x).
-        grad_j = torch.addcmul(grad_d, grad_a, rel_k.flip(0) * _PERP.to(rel_k))
-        grad_k = torch.addcmul(grad_d, grad_a, rel_j.flip(0) * _PERP.to(rel_j)).neg_()
+        grad_j = torch.addcmul(grad_d, grad_a, _perp(rel_k))
+        grad_k = torch.addcmul(grad_d, grad_a, _perp(rel_j)).neg_()
         grad_rel = grad_j.roll(1, 1).add_(grad_k.roll(2, 1))                            # (2, 3, F+1)
         grads = torch.cat([grad_rel, -(grad_w * w).sum(dim=0, keepdim=True) / at[2], grad_w / at[2]])
         grad_data = grads.new_zeros(6, ctx.vertices).index_add_(1, corners.view(3, -1)[:, :-1].reshape(-1),
@@ -58,7 +58,11 @@ class _PixelNormals(torch.autograd.Function):
         return grad_data, None, None, None, None
 
 
-_PERP = torch.tensor([1.0, -1.0]).view(2, 1, 1)
+def _perp(v: torch.Tensor) -> torch.Tensor:
+    """(v_y, −v_x) of v (2, ...): a new tensor (no constant to move to the device every call)."""
+    out = v.flip(0)
+    out[1].neg_()
+    return out
 
 
 class _CrossingWeights(torch.autograd.Function):
