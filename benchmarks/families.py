@@ -28,6 +28,7 @@ import numpy as np
 from common import ICT_EXPRESSIONS, ICT_MODEL, ROOT
 
 FAMILIES = ("ict", "ict-mask", "makehuman", "embedded")
+METRES_PER_UNIT = {"ict": 0.01, "ict-mask": 0.001, "makehuman": 1.0, "embedded": 1.0}
 MAKEHUMAN = ROOT.parent / "shared" / "data" / "makehuman"
 MASK_VERTICES = 3000
 MAKEHUMAN_SAMPLES, MAKEHUMAN_BODY_MODES, MAKEHUMAN_HEAD_MODES = 3000, 200, 100
@@ -127,3 +128,12 @@ def person(family: str, seed: int) -> np.ndarray:
     if family == "embedded":
         return family_model("embedded").sample(rng)
     raise ValueError(f"unknown family {family!r}; choose one of {', '.join(FAMILIES)}")
+
+
+def build_all(families: list[str], people: int) -> None:
+    """Build and cache the families' models and their first ``people`` people (before a study's
+    workers start, so no two build the same one)."""
+    for family in families:
+        family_model(family)
+        for seed in range(people):
+            person(family, seed)

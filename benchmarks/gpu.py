@@ -89,16 +89,21 @@ def timed(fit, device: str):
     return result, time.perf_counter() - start
 
 
+def save(rows: dict[str, object], out: Path | None) -> None:
+    """The rows so far as JSON in ``out`` (if given): written after every section, so a run stopped
+    by its time limit still leaves what it measured."""
+    if out:
+        out.write_text(json.dumps(rows, indent=1))
+
+
 def report(rows: dict[str, object], out: Path | None) -> None:
-    """The rows so far as a markdown table on stdout, and as JSON in ``out``: written after every
-    section, so a run stopped by its time limit still leaves what it measured."""
+    """The rows as a markdown table on stdout, and as JSON in ``out``."""
     width = max(len(key) for key in rows)
     print(f"| {'measure':<{width}} | value |\n|{'-' * (width + 2)}|---|")
     for key, value in rows.items():
         shown = f"{value:.3g}" if isinstance(value, float) else "-" if value is None else str(value)
         print(f"| {key:<{width}} | {shown} |", flush=True)
-    if out:
-        out.write_text(json.dumps(rows, indent=1))
+    save(rows, out)
 
 
 def main() -> None:
@@ -134,8 +139,7 @@ def main() -> None:
     rows["render ops/it"], rows["render waits/it"] = per_iteration(
         lambda it: statfit.reconstruct(embedded, normal_map, camera, "statistical", preset="paper", align="none",
                                        device=device, iterations=it).iterations)
-    if args.out:
-        args.out.write_text(json.dumps(rows, indent=1))
+    save(rows, args.out)
 
     ict = load_model(ICT_MODEL)
     scan = scan_case("jaw-open")
@@ -164,8 +168,7 @@ def main() -> None:
         rows[f"{name}: ms/it"] = 1e3 * per_iteration_s
         rows[f"{name}: set-up s"] = short_seconds - short.iterations * per_iteration_s
         print(f"{name}: {seconds:.2f} s, {1e3 * per_iteration_s:.2f} ms/it", file=sys.stderr, flush=True)
-        if args.out:
-            args.out.write_text(json.dumps(rows, indent=1))
+        save(rows, args.out)
 
     count = 4 if args.quick else 16
     scans = []

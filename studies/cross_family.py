@@ -141,12 +141,9 @@ def main() -> None:
     runs = [(p, m, s, h, method) for p in args.families for m in args.families for s in range(args.people)
             for h in HALVES for method in args.methods]
     if not args.report:
-        from families import family_model, person
+        from families import build_all
 
-        for family in args.families:     # build and cache models and people once, before the workers
-            family_model(family)
-            for seed in range(args.people):
-                person(family, seed)
+        build_all(args.families, args.people)
     run_or_report(fit_case, runs, RESULTS, report, args.report,
                   key=lambda row: (row["people"], row["model"], row["seed"], row["half"], row["method"]))
 

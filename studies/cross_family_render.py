@@ -32,7 +32,6 @@ from study_runs import run_or_report  # noqa: E402
 RESULTS = ROOT / "studies" / "results" / "cross_family_render.json"
 METHODS = ("default", "pca", "statistical", "hybrid", "laplacian")
 POINTS = 20_000
-UNITS = {"ict": 0.01, "ict-mask": 0.001, "makehuman": 1.0, "embedded": 1.0}    # metres per unit
 
 
 def render_case(people: str, model_family: str, seed: int, size: int):
@@ -41,14 +40,14 @@ def render_case(people: str, model_family: str, seed: int, size: int):
     import torch
     import trimesh
 
-    from families import family_model, person
+    from families import METRES_PER_UNIT, family_model, person
     from statfit.renderer import rasterize
     from statfit.renderer.images import render_target
     from statfit.structures.normal_map import NormalMap
     from statfit.synth.sample import camera_for_view
 
     faces, template = family_model(people).faces, family_model(model_family).template
-    shape = person(people, seed) * (UNITS[people] / UNITS[model_family])
+    shape = person(people, seed) * (METRES_PER_UNIT[people] / METRES_PER_UNIT[model_family])
     shape = shape - shape.mean(axis=0) + template.mean(axis=0)
     yaw = float(np.random.default_rng(900 + seed).uniform(15, 35))
     camera = camera_for_view(shape, yaw, 5.0, size)
@@ -127,12 +126,9 @@ def main() -> None:
     runs = [(p, m, s, method, args.size) for p in args.families for m in args.families for s in range(args.people)
             for method in args.methods]
     if not args.report:
-        from families import family_model, person
+        from families import build_all
 
-        for family in args.families:     # build and cache models and people once, before the workers
-            family_model(family)
-            for seed in range(args.people):
-                person(family, seed)
+        build_all(args.families, args.people)
     run_or_report(fit_case, runs, RESULTS, report, args.report,
                   key=lambda row: (row["people"], row["model"], row["seed"], row["method"], row["size"]))
 
