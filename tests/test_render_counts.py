@@ -88,7 +88,7 @@ def test_the_objective_runs_without_host_waits_in_few_ops(embedded_model):
 def test_a_render_iteration_counts(embedded_model):
     """`reconstruct` (paper statistical, --align none): ops per iteration, and no host wait asked by
     the renderer or the objective beyond the overflow check. Measured 2026-11-26 (64² here; 729 at
-    256² as sync_count.py counts, from 1,030): 766 ops per iteration in all (729 before the
+    256² as sync_count.py counts, from 1,030): 768 ops per iteration in all (729 before the
     per-triangle set-up of the pixel normals) — the issue's target of
     150 is NOT reached (the loop's own ~40, ~620 forward and ~70 backward ops of the render) — and
     0.06 waits per iteration in all (the renderer's overflow check every 16th call; 1.3 before the
