@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Callable
 
@@ -14,13 +14,18 @@ def run_or_report(run_case: Callable[..., dict], runs: list[tuple], results: Pat
                   key: Callable[[dict], tuple] | None = None) -> None:
     """Unless ``only_report``, ``run_case(*run)`` for every run of ``runs``, two at a time in fresh
     (spawned, so no torch state is shared) processes, its rows stored in ``results`` (JSON); then
-    print ``report`` of the stored rows. With ``key`` (a row → the run tuple that made it), the rows
-    already stored are kept and only the runs they lack are run."""
+    print ``report`` of the stored rows. The rows are written as each run ends (a stopped study keeps
+    what it measured), with a progress line. With ``key`` (a row → the run tuple that made it), the
+    rows already stored are kept and only the runs they lack are run; without it, a run starts afresh."""
     if not only_report:
-        kept = json.loads(results.read_text()) if key is not None and results.is_file() else []
-        done = {key(row) for row in kept} if key is not None else set()
+        rows = json.loads(results.read_text()) if key is not None and results.is_file() else []
+        done = {key(row) for row in rows} if key is not None else set()
         todo = [run for run in runs if tuple(run) not in done]
+        results.write_text(json.dumps(rows, indent=1))
         with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as pool:
-            rows = list(pool.map(run_case, *zip(*todo))) if todo else []
-        results.write_text(json.dumps(kept + rows, indent=1))
+            pending = [pool.submit(run_case, *run) for run in todo]
+            for count, future in enumerate(as_completed(pending), 1):
+                rows.append(future.result())
+                results.write_text(json.dumps(rows, indent=1))
+                print(f"{count}/{len(todo)}", *(rows[-1].get(k, "") for k in list(rows[-1])[:5]), flush=True)
     print(report(json.loads(results.read_text())))
