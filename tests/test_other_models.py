@@ -5,6 +5,8 @@ Every command must fit such a model or refuse in one line; the pose search must 
 as it finds a closed head's."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -190,3 +192,81 @@ def test_a_person_far_outside_the_model_is_fitted_with_a_warning_not_refused(emb
     with pytest.warns(StatfitWarning, match="far outside the model's people"):
         estimate = estimate_pose(embedded_model, Scan.from_mesh(made.vertices, made.faces))
     assert _angle(estimate.transform.rotation, made.transform.rotation) < 2.0 and estimate.matched > 0.9
+
+
+def _with_a_moving_head(model, spread: float):
+    """``model`` with a first mode that moves the whole head along +y (``spread`` RMS radii per
+    standard deviation), as a body model's modes move its head: its other modes made orthogonal."""
+    from statfit.structures.frame import Frame
+
+    n = model.num_vertices
+    move = np.zeros((n, 3))
+    move[:, 1] = 1.0
+    move = move.reshape(-1) / np.sqrt(n)
+    rest, _ = np.linalg.qr(model.basis - np.outer(move, move @ model.basis))
+    std = np.concatenate([[spread * Frame.of(model.template).scale * np.sqrt(n)], model.std])
+    return dataclasses.replace(model, basis=np.column_stack([move, rest]), std=std)
+
+
+def test_the_fit_starts_from_the_shape_the_pose_search_fitted(embedded_model):
+    """A person whose head the model's first mode moved two radii: the pose search finds the pose
+    together with every coefficient; the fit's first iterate is that shape (mean + Σ c std U), not
+    the mean, which lies wherever the pose put it."""
+    from statfit.registration.job import prealign, register
+
+    model = _with_a_moving_head(embedded_model, 1.0)
+    rng = np.random.default_rng(4)
+    truth = model.shape(np.concatenate([[2.0], rng.standard_normal(embedded_model.num_modes)]))
+    made = realistic_scan(truth, model.faces, rng, clutter=0.0, units="mm", yaw_deg=20)
+    scan = Scan.from_mesh(made.vertices, made.faces)
+    transform, _, coefficients = prealign(model, scan, "auto")
+    first = []
+    register(model, scan, "laplacian", iterations=1, threads=1,
+             on_snapshot=lambda it, x: first.append(x) if it == 0 else None)
+    expected = transform.apply(model.shape(coefficients))
+    assert np.abs(first[0] - expected).max() < 1e-4 * np.ptp(made.truth)
+    assert np.linalg.norm(first[0] - made.truth, axis=1).mean() < 0.2 * np.linalg.norm(
+        transform.apply(model.template) - made.truth, axis=1).mean()
+
+
+def test_no_scan_point_near_the_face_means_no_hair_not_a_nan(embedded_model):
+    """The hair test fits the face alone; where no scan point lies closest to the face (half a head
+    seen from behind, or a start far away), there is no face to fit: no point is hair (it was a
+    NaN loss at the first step, then a refusal)."""
+    import torch
+
+    from statfit.core.settings import FitSpace
+    from statfit.geometry.closest import ClosestPointQuery
+    from statfit.registration.hair import hair_points
+    from statfit.model.statmodel import face_triangles
+
+    space = FitSpace.of(embedded_model)
+    face = torch.as_tensor(face_triangles(embedded_model))
+    query = ClosestPointQuery(embedded_model.faces, embedded_model.num_vertices, k=2)
+    back = space.mean[space.mean[:, 2] < space.mean[:, 2].quantile(0.1)] * 1.01    # behind the head
+    hair = hair_points(space, query, back, None, face, 0.05, space.mean.clone())
+    assert hair is not None and not bool(hair.any())
+
+
+def test_a_closed_form_first_stage_starts_from_the_mean_unless_the_mean_lies_far(embedded_model):
+    """The rule of ``fit_start``: gradient stages start from the pose's shape; the closed form from
+    the mean, unless the scan's points lie (median) more than FAR_DISTANCE from it."""
+    import torch
+
+    from statfit.core.methods import resolve
+    from statfit.core.settings import FitSpace
+    from statfit.geometry.closest import ClosestPointQuery
+    from statfit.registration.job import FAR_DISTANCE, fit_start
+
+    space = FitSpace.of(embedded_model)
+    query = ClosestPointQuery(embedded_model.faces, embedded_model.num_vertices, k=2)
+    shape = np.zeros(embedded_model.num_modes)
+    shape[0] = 3.0
+    shaped = space.mean + ((torch.as_tensor(shape, dtype=space.mean.dtype) * space.std) @ space.basis_t).view_as(space.mean)
+    closed_form, gradient = resolve("default")[0], resolve("laplacian")[0]
+    near_points = space.mean[::7]
+    far_points = near_points + torch.tensor([0.0, 10 * FAR_DISTANCE, 0.0], dtype=space.mean.dtype)
+    assert torch.equal(fit_start(space, query, near_points, None, shape, gradient, 0.05), shaped)
+    assert torch.equal(fit_start(space, query, near_points, None, shape, closed_form, 0.05), space.mean)
+    assert torch.equal(fit_start(space, query, far_points, None, shape, closed_form, 0.05), shaped)
+    assert torch.equal(fit_start(space, query, far_points, None, None, closed_form, 0.05), space.mean)

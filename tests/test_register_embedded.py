@@ -36,8 +36,11 @@ def test_paper_statistical_beats_laplacian_and_regularized(fit):
 
 
 def test_default_pipeline_beats_the_vertex_based_baselines(fit):
+    """Not ``hybrid``: since the gradient methods start from the pose search's shape (docs/studies.md
+    §19), its 1,000 steps fit this in-span demo head closer than the default (0.18 against 0.24 mm
+    over all vertices); the cross-family studies keep the default (§17, §19)."""
     default = fit("default", "tuned")
     template = fit("none", "paper")
-    for method in ("statistical", "hybrid", "laplacian", "regularized", "none"):
+    for method in ("statistical", "laplacian", "regularized", "none"):
         assert default["all"]["mean"] < fit(method, "tuned")["all"]["mean"], method
     assert default["all"]["mean"] < 0.5 * template["all"]["mean"]

@@ -32,6 +32,8 @@ HAIR_OFFSET = 0.05
 MAX_HAIR_SHARE = 0.6
 # The face-only fit that finds the scalp: the closed-form pca stage, at most this many steps.
 FACE_FIT_ITERATIONS = 40
+# Fewer scan points than this closest to the face: no face to fit, so no hair can be told from it.
+MIN_FACE_POINTS = 10
 
 
 def hair_suspects(query: ClosestPointQuery, shape: torch.Tensor, points: torch.Tensor, face: torch.Tensor,
@@ -53,13 +55,18 @@ def hair_suspects(query: ClosestPointQuery, shape: torch.Tensor, points: torch.T
 
 
 def hair_points(space: FitSpace, query: ClosestPointQuery, points: torch.Tensor, normals: torch.Tensor | None,
-                face: torch.Tensor, trim: float, scalp: torch.Tensor | None = None) -> torch.Tensor | None:
+                face: torch.Tensor, trim: float, start: torch.Tensor, scalp: torch.Tensor | None = None
+                ) -> torch.Tensor | None:
     """(M,) bool: the scan ``points`` (M, 3, fit frame; ``normals`` (M, 3) or None) that are hair
     over the head of a fit of the model to its ``face`` (F,) bool triangles alone (the closed-form
-    pca stage as shipped, at most FACE_FIT_ITERATIONS steps; the data term's clutter rules and
-    ``trim``), or on its ``scalp`` (F,) bool triangles; None: no head under hair (:func:`hair_suspects`)."""
+    pca stage as shipped from ``start`` (N, 3), at most FACE_FIT_ITERATIONS steps; the data term's
+    clutter rules and ``trim``), or on its ``scalp`` (F,) bool triangles; None: no head under hair
+    (:func:`hair_suspects`). Where too few points lie closest to the face to fit it, none is hair."""
     objective = ScanObjective(points, query, trim=trim, region_faces=face, normals=normals, clutter=True)
+    objective.refresh(start)
+    if objective.kept < MIN_FACE_POINTS:
+        return torch.zeros(len(points), dtype=torch.bool, device=points.device)
     pca = resolve("pca")[0]
-    fitted = fit_coefficients(space.mean, space.basis_t, space.std, objective, space.mean, FACE_FIT_ITERATIONS,
+    fitted = fit_coefficients(space.mean, space.basis_t, space.std, objective, start, FACE_FIT_ITERATIONS,
                               pca.noise, pca.levels)
     return hair_suspects(query, fitted.vertices, points, face, scalp)

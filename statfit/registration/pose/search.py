@@ -92,13 +92,15 @@ class PoseEstimate:
     first modes' refinement) of the best pose and ``runner_up`` that of the best pose ≥
     DISTINCT_DEGREES from it; ``matched`` the share of scan points within POLISH_TOLERANCE (with
     agreeing normals) of the polished fit; ``units`` the power of ten
-    taken as the scan's unit relative to the model's."""
+    taken as the scan's unit relative to the model's; ``coefficients`` (K,) the polished fit's shape,
+    in standard deviations of the model's modes."""
 
     transform: Similarity
     score: float
     matched: float
     runner_up: float
     units: float
+    coefficients: np.ndarray
 
     @property
     def ambiguous(self) -> bool:
@@ -173,7 +175,8 @@ def estimate_pose(model: StatModel, scan: Scan, seed: int = 0) -> PoseEstimate:
             transform, matched, coefficients = in_place, in_place_matched, in_place_coefficients
     if (far := check_plausible(coarse_matched, matched, coefficients, TOLERANCE * frame.scale)) is not None:
         warnings.warn(far, StatfitWarning, stacklevel=2)
-    return PoseEstimate(to_scan_frame(transform, frame, centroid, units), coarse_score, matched, runner_up, units)
+    return PoseEstimate(to_scan_frame(transform, frame, centroid, units), coarse_score, matched, runner_up, units,
+                        coefficients)
 
 
 def refine_pose(model: StatModel, scan: Scan, start: Similarity, seed: int = 0) -> PoseEstimate:
@@ -191,9 +194,9 @@ def refine_pose(model: StatModel, scan: Scan, start: Similarity, seed: int = 0) 
     mean = frame.to_unit(model.template)
     rng = np.random.default_rng(seed)
     polish = rng.choice(len(points), min(POLISH_SUBSAMPLE, len(points)), replace=False)
-    transform, score, matched, _ = polish_pose(Matcher(model.faces, mean), mean, scaled_modes(model, frame),
-                                               points[polish], scan.normals[polish], in_units)
-    return PoseEstimate(to_scan_frame(transform, frame, centroid, units), score, matched, 1.0, units)
+    transform, score, matched, coefficients = polish_pose(Matcher(model.faces, mean), mean, scaled_modes(model, frame),
+                                                          points[polish], scan.normals[polish], in_units)
+    return PoseEstimate(to_scan_frame(transform, frame, centroid, units), score, matched, 1.0, units, coefficients)
 
 
 def near(pose: Similarity, other: Similarity) -> bool:
