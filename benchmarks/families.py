@@ -14,6 +14,14 @@ ICT-mask people are the same, on the mask's vertices; MakeHuman's are held-out b
 with expressions, older: outside the MakeHuman model) cut to the head; the embedded head's are model
 samples. A person is a mesh of their family's topology in their family's units.
 
+Landmarks (the 68 of the iBUG / Multi-PIE scheme) for the three real families
+(:func:`landmarked_model`, :func:`person_landmarks`): ICT's own; the mask's, ICT's carried through the
+cut to the nearest kept vertex (its people's: the ICT person's landmark vertices, exact); MakeHuman's,
+transferred once from ICT by statfit itself: ICT's model registered to MakeHuman's mean head (the
+default, no landmarks), each fitted landmark's nearest MakeHuman vertex (0.5–6 mm from it; mirror
+partners symmetric to 0.8 mm on average). The embedded head has 10 landmarks of its own, so it
+takes no part.
+
 Built models and people are cached outside the repository (derived data never enters it):
 ``$STATFIT_STUDY_CACHE`` or ``~/.cache/statfit-studies``.
 """
@@ -28,6 +36,7 @@ import numpy as np
 from common import ICT_EXPRESSIONS, ICT_MODEL, ROOT
 
 FAMILIES = ("ict", "ict-mask", "makehuman", "embedded")
+LANDMARKED = ("ict", "ict-mask", "makehuman")
 METRES_PER_UNIT = {"ict": 0.01, "ict-mask": 0.001, "makehuman": 1.0, "embedded": 1.0}
 MAKEHUMAN = ROOT.parent / "shared" / "data" / "makehuman"
 MASK_VERTICES = 3000
@@ -137,3 +146,37 @@ def build_all(families: list[str], people: int) -> None:
         family_model(family)
         for seed in range(people):
             person(family, seed)
+
+
+def _makehuman_landmarks() -> np.ndarray:
+    """(68,) MakeHuman head-model vertex indices of ICT's landmarks, transferred once (module docstring)."""
+    cached = cache_dir() / "makehuman-landmarks.npy"
+    if not cached.is_file():
+        import torch
+        from scipy.spatial import cKDTree
+
+        from statfit.registration.job import register
+        from statfit.structures.scan import Scan
+
+        torch.set_num_threads(1)
+        ict, head = _ict_full(), family_model("makehuman")
+        fit = register(ict, Scan.from_mesh(head.template, head.faces), threads=1)
+        np.save(cached, cKDTree(head.template).query(fit.vertices[ict.landmarks])[1])
+    return np.load(cached)
+
+
+def landmarked_model(name: str):
+    """The family's model with its 68 landmarks (a family of :data:`LANDMARKED`)."""
+    from statfit.model.statmodel import with_landmarks
+
+    if name not in LANDMARKED:
+        raise ValueError(f"family {name!r} has no 68 landmarks; choose one of {', '.join(LANDMARKED)}")
+    model = family_model(name)
+    return with_landmarks(model, _makehuman_landmarks()) if name == "makehuman" else model
+
+
+def person_landmarks(family: str, seed: int) -> np.ndarray:
+    """(68, 3) the true landmark positions of person ``seed`` of ``family``, in the family's units."""
+    if family == "ict-mask":
+        return 10.0 * person("ict", seed)[_ict_full().landmarks]
+    return person(family, seed)[landmarked_model(family).landmarks]

@@ -36,6 +36,7 @@ from study_runs import run_or_report  # noqa: E402
 
 RESULTS = ROOT / "studies" / "results" / "cross_family.json"
 METHODS = ("mean", "default", "pca", "statistical", "hybrid", "laplacian")
+SINGLE_METHODS = METHODS[2:]
 HALVES = ("left", "right")
 SCAN_POINTS = 4300
 
@@ -75,7 +76,7 @@ def fit_case(people: str, model_family: str, seed: int, half: str, method: str) 
     torch.set_num_threads(1)
     from families import family_model
     from statfit.core.threads import flush_denormals_everywhere
-    from statfit.registration.job import register
+    from default_candidates import register_candidate
     from statfit.registration.pose.search import estimate_pose
     from statfit.structures.scan import Scan
 
@@ -90,7 +91,7 @@ def fit_case(people: str, model_family: str, seed: int, half: str, method: str) 
         if method == "mean":
             vertices, seconds = estimate_pose(model, fitted_half).transform.apply(model.template), 0.0
         else:
-            result = register(model, fitted_half, method, threads=1)
+            result = register_candidate(method, model, fitted_half, threads=1)
             vertices, seconds = result.vertices, result.seconds
     except Exception as exc:   # a refusal is a result too
         return row | {"error": f"{type(exc).__name__}: {exc}".splitlines()[0]}
@@ -100,10 +101,23 @@ def fit_case(people: str, model_family: str, seed: int, half: str, method: str) 
                   "seen": float(np.nanmean(seen_distance)), "seconds": seconds}
 
 
-def report(rows: list[dict]) -> str:
+def index_rows(rows: list[dict]) -> tuple[dict, list[tuple[str, str]], list[str]]:
+    """Rows by (people, model, seed, half, method); the (people, model) pairs and the methods, in
+    the order of METHODS, then any others (candidates) in the order they came."""
     by = {(r["people"], r["model"], r["seed"], r["half"], r["method"]): r for r in rows}
     pairs = list(dict.fromkeys((r["people"], r["model"]) for r in rows))
-    methods = [m for m in METHODS if any(r["method"] == m for r in rows)]
+    present = dict.fromkeys(r["method"] for r in rows)
+    return by, pairs, [m for m in METHODS if m in present] + [m for m in present if m not in METHODS]
+
+
+def fitted_cases(by: dict, people: str, model: str, methods: list[str]) -> tuple[list[tuple], list[tuple]]:
+    """The pair's (seed, half) cases, and those every method fitted (scored)."""
+    cases = sorted({(s, h) for (p, m, s, h, _) in by if (p, m) == (people, model)})
+    return cases, [c for c in cases if all("held" in by.get((people, model, *c, m), {}) for m in methods)]
+
+
+def report(rows: list[dict]) -> str:
+    by, pairs, methods = index_rows(rows)
     lines = ["Held-out half: mean distance (mm) of the held-out half's scan points to the fit, over the "
              "cases (people × halves) every method fitted; the default's worst case ÷ the mean's on the "
              "same case in brackets; refused: cases the pose search refused (for every method).", "",
@@ -111,14 +125,13 @@ def report(rows: list[dict]) -> str:
              + " | default ÷ mean | default ÷ best method | covered |",
              "|---|---|---|---|" + "---|" * (len(methods) + 3)]
     for people, model in pairs:
-        cases = sorted({(s, h) for (p, m, s, h, _) in by if (p, m) == (people, model)})
-        fitted = [c for c in cases if all("held" in by.get((people, model, *c, m), {}) for m in methods)]
+        cases, fitted = fitted_cases(by, people, model, methods)
         if not fitted:
             lines.append(f"| {people} | {model} | 0 | {len(cases)} |" + " – |" * (len(methods) + 3))
             continue
         means = {m: float(np.mean([by[(people, model, *c, m)]["held"] for c in fitted])) for m in methods}
         ratios = [by[(people, model, *c, "default")]["held"] / by[(people, model, *c, "mean")]["held"] for c in fitted]
-        best = min(v for m, v in means.items() if m not in ("mean", "default"))
+        best = min(v for m, v in means.items() if m in SINGLE_METHODS)
         covered = np.mean([by[(people, model, *c, "default")]["held_covered"] for c in fitted])
         lines.append(f"| {people} | {model} | {len(fitted)} | {len(cases) - len(fitted)} | "
                      + " | ".join(f"{means[m]:.2f}" for m in methods)
@@ -135,7 +148,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--people", type=int, default=2, help="people per family")
     parser.add_argument("--families", nargs="*", default=list(FAMILIES[:3]), help=f"of {', '.join(FAMILIES)}")
-    parser.add_argument("--methods", nargs="*", default=list(METHODS))
+    parser.add_argument("--methods", nargs="*", default=list(METHODS),
+                        help="methods, pipelines or candidates (studies/default_candidates.py) to run and report")
     parser.add_argument("--report", action="store_true", help="only print the tables of the stored rows")
     args = parser.parse_args()
     runs = [(p, m, s, h, method) for p in args.families for m in args.families for s in range(args.people)
@@ -144,7 +158,8 @@ def main() -> None:
         from families import build_all
 
         build_all(args.families, args.people)
-    run_or_report(fit_case, runs, RESULTS, report, args.report,
+    run_or_report(fit_case, runs, RESULTS, lambda rows: report([r for r in rows if r["method"] in (*METHODS, *args.methods)]),
+                  args.report,
                   key=lambda row: (row["people"], row["model"], row["seed"], row["half"], row["method"]))
 
 

@@ -35,6 +35,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from cases import FORMER_DEFAULT  # noqa: E402
 
@@ -76,7 +77,8 @@ def candidates() -> dict:
         for weight in (1.0, 3.0, 10.0):
             tried[f"default's closed form → hybrid β 1 lr {lr} 200 it w {weight:g}"] = (
                 (closed_form, Settings("hybrid", 200, lr, beta=1.0, lam=19.0)), {"landmark_weight": weight})
-    return tried
+    from default_candidates import candidates as cross_family_candidates   # docs/studies.md §19
+    return tried | cross_family_candidates()
 
 
 def register_with(method: str, model, points: np.ndarray, **options):

@@ -8,9 +8,12 @@ offset and a change to millimetres; one landmark (the nose tip) is misplaced by 
 mm against the true landmark positions (all 51) and all vertices.
 
     python studies/landmark_term.py        # ~6 min on 2 cores; writes studies/results/landmark_term.json
+    python studies/landmark_term.py --methods default "closed form σ 0.003 → laplacian λ 300 lr 0.03 300 it" \
+        --weights 10 --results studies/results/landmark_term_2026-11-26.json    # §19's check
 """
 from __future__ import annotations
 
+import argparse
 import json
 import multiprocessing
 import sys
@@ -21,6 +24,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from cases import FORMER_DEFAULT  # noqa: E402
 
@@ -63,24 +67,33 @@ def fit(case: str, method: str, weight: float) -> dict:
     landmarks = truth[indices] + rng.normal(scale=NOISE_MM, size=(len(indices), 3))
     direction = rng.normal(size=3)
     landmarks[NOSE_TIP] += MISPLACED_MM * direction / np.linalg.norm(direction)
-    result = register_named(model, move(data.points), method, landmarks=landmarks, landmark_weight=weight, threads=1)
+    from default_candidates import candidates, register_candidate
+
+    register = register_candidate if method in candidates() else register_named
+    result = register(model, move(data.points), method, landmarks=landmarks, landmark_weight=weight, threads=1)
     return {"case": case, "method": method, "weight": weight, "seconds": result.seconds,
             "landmark_mm": float(np.linalg.norm(result.vertices[indices] - truth[indices], axis=1).mean()),
             "all_mm": float(np.linalg.norm(result.vertices - truth, axis=1).mean())}
 
 
 def main() -> None:
-    out = ROOT / "studies" / "results" / "landmark_term.json"
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--methods", nargs="*", default=list(METHODS),
+                        help="methods, pipelines or candidates (studies/default_candidates.py)")
+    parser.add_argument("--weights", nargs="*", type=float, default=list(WEIGHTS))
+    parser.add_argument("--results", type=Path, default=ROOT / "studies" / "results" / "landmark_term.json")
+    args = parser.parse_args()
+    out = args.results
     done = json.loads(out.read_text()) if out.is_file() else []  # rerun: only what is missing
     have = {(r["case"], r["method"], r["weight"]) for r in done}
-    runs = [(c, m, w) for m in METHODS for w in WEIGHTS for c in CASES if (c, m, w) not in have]
+    runs = [(c, m, w) for m in args.methods for w in args.weights for c in CASES if (c, m, w) not in have]
     with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as pool:
         rows = done + (list(pool.map(fit, *zip(*runs))) if runs else [])
     out.write_text(json.dumps(rows, indent=1))
     print("| method | landmark weight | " + " | ".join(CASES) + " | mean landmark mm | mean all-vertex mm | s |")
     print("|---|---|" + "---|" * (len(CASES) + 3))
-    for method in METHODS:
-        for weight in WEIGHTS:
+    for method in args.methods:
+        for weight in args.weights:
             cells = [r for r in rows if r["method"] == method and r["weight"] == weight]
             by_case = {r["case"]: r for r in cells}
             print(f"| {method} | {weight:g} | " + " | ".join(f"{by_case[c]['landmark_mm']:.2f}" for c in CASES)
