@@ -69,8 +69,9 @@ def fit(case: str, method: str, weight: float) -> dict:
     landmarks[NOSE_TIP] += MISPLACED_MM * direction / np.linalg.norm(direction)
     from default_candidates import candidates, register_candidate
 
-    register = register_candidate if method in candidates() else register_named
-    result = register(model, move(data.points), method, landmarks=landmarks, landmark_weight=weight, threads=1)
+    options = dict(landmarks=landmarks, landmark_weight=weight, threads=1)
+    result = (register_candidate(method, model, move(data.points), **options) if method in candidates()
+              else register_named(model, move(data.points), method, **options))
     return {"case": case, "method": method, "weight": weight, "seconds": result.seconds,
             "landmark_mm": float(np.linalg.norm(result.vertices[indices] - truth[indices], axis=1).mean()),
             "all_mm": float(np.linalg.norm(result.vertices - truth, axis=1).mean())}
