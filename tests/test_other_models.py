@@ -262,7 +262,7 @@ def test_a_closed_form_first_stage_starts_from_the_mean_unless_the_mean_lies_far
     query = ClosestPointQuery(embedded_model.faces, embedded_model.num_vertices, k=2)
     shape = np.zeros(embedded_model.num_modes)
     shape[0] = 3.0
-    shaped = space.mean + ((torch.as_tensor(shape, dtype=space.mean.dtype) * space.std) @ space.basis_t).view_as(space.mean)
+    shaped = space.shape(shape)
     closed_form, gradient = resolve("default")[0], resolve("laplacian")[0]
     near_points = space.mean[::7]
     far_points = near_points + torch.tensor([0.0, 10 * FAR_DISTANCE, 0.0], dtype=space.mean.dtype)

@@ -127,3 +127,8 @@ class FitSpace:
 
         return cls(as_tensor(frame.to_unit(model.template)), as_tensor(model.basis.T),
                    as_tensor(model.std / frame.scale), model.faces)
+
+    def shape(self, coefficients: np.ndarray | torch.Tensor) -> torch.Tensor:
+        """The mean plus Σ c_k std_k U_k for ``coefficients`` (K,) in standard deviations: (N, c)."""
+        c = torch.as_tensor(coefficients, dtype=self.mean.dtype, device=self.mean.device)
+        return self.mean + ((c * self.std) @ self.basis_t).view_as(self.mean)

@@ -129,8 +129,7 @@ def fit_start(space: FitSpace, query: ClosestPointQuery, points: torch.Tensor, n
     method fitted better from it (docs/studies.md §19)."""
     if shape is None:
         return space.mean.clone()
-    shaped = space.mean + ((torch.as_tensor(shape, dtype=space.mean.dtype, device=space.mean.device) * space.std)
-                           @ space.basis_t).view_as(space.mean)
+    shaped = space.shape(shape)
     if first.optimizer != "gauss-newton":
         return shaped
     probe = ScanObjective(points, query, trim=trim, normals=normals)
