@@ -42,7 +42,7 @@ SCAN_POINTS = 4300
 
 
 def case_scan(people: str, seed: int):
-    """The person's realistic scan (mm, posed) and its area-sampled points in the person's frame."""
+    """The person's realistic scan (mm, posed) and the person → scan similarity."""
     from families import family_model, person
     from statfit.structures.scan import Scan
     from statfit.synth.scanner import realistic_scan
@@ -52,8 +52,7 @@ def case_scan(people: str, seed: int):
     rng = np.random.default_rng(500 + seed)
     made = realistic_scan(shape, faces, rng, points=SCAN_POINTS, yaw_deg=rng.uniform(-30, 30), clutter=0.0,
                           holes=0, units="mm")
-    scan = Scan.from_mesh(made.vertices, made.faces)
-    return scan, made.transform.inverse_apply(scan.points)
+    return Scan.from_mesh(made.vertices, made.faces), made.transform
 
 
 def inside_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -81,7 +80,8 @@ def fit_case(people: str, model_family: str, seed: int, half: str, method: str) 
     from statfit.structures.scan import Scan
 
     flush_denormals_everywhere()
-    scan, own = case_scan(people, seed)
+    scan, transform = case_scan(people, seed)
+    own = transform.inverse_apply(scan.points)
     middle = np.median(own[:, 0])
     seen = (own[:, 0] > middle) if half == "left" else (own[:, 0] <= middle)
     fitted_half = Scan(scan.points[seen], scan.normals[seen])

@@ -33,7 +33,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from cross_family import METHODS, SINGLE_METHODS, fitted_cases, index_rows, inside_distance  # noqa: E402
+from cross_family import (METHODS, SINGLE_METHODS, case_scan, fitted_cases, index_rows,  # noqa: E402
+                          inside_distance)
 from families import LANDMARKED  # noqa: E402
 from study_runs import run_or_report  # noqa: E402
 
@@ -41,25 +42,19 @@ RESULTS = ROOT / "studies" / "results" / "cross_family_landmarks.json"
 HALVES = ("left", "right", "upper", "lower")
 INNER = slice(17, 68)
 NOISE_MM = 1.0
-SCAN_POINTS = 4300
 
 
 def case_data(people: str, seed: int, half: str) -> dict:
     """The fitted half (scan points, landmarks with NaN rows for those not given) and the test: the
     held-out half's points, the true landmarks (68, 3) and which of them are held out; in the scan's
     frame (mm)."""
-    from families import family_model, person, person_landmarks
+    from families import person_landmarks
     from statfit.structures.scan import Scan
-    from statfit.synth.scanner import realistic_scan
 
-    shape = person(people, seed)
-    rng = np.random.default_rng(500 + seed)
-    made = realistic_scan(shape, family_model(people).faces, rng, points=SCAN_POINTS,
-                          yaw_deg=rng.uniform(-30, 30), clutter=0.0, holes=0, units="mm")
-    scan = Scan.from_mesh(made.vertices, made.faces)
-    own = made.transform.inverse_apply(scan.points)
+    scan, transform = case_scan(people, seed)
+    own = transform.inverse_apply(scan.points)
     own_landmarks = person_landmarks(people, seed)
-    truth = made.transform.apply(own_landmarks)
+    truth = transform.apply(own_landmarks)
     inner = np.zeros(len(truth), dtype=bool)
     inner[INNER] = True
     centre = own_landmarks[inner].mean(axis=0)
