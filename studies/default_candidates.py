@@ -23,9 +23,12 @@ def candidates() -> dict:
     return tried
 
 
-def register_candidate(method: str, model, points, **options):
-    """``register`` with a shipped method or pipeline, or a candidate of :func:`candidates`."""
+def register_candidate(method: str, model, points, tried: dict | None = None, **options):
+    """``register`` with a shipped method or pipeline, or a candidate of ``tried`` (name → (stages,
+    options); default :func:`candidates`). A candidate without stages is a shipped method with
+    options, named "<method> w <landmark weight>"."""
     from statfit.registration.job import register
 
-    stages, extra = candidates().get(method, (None, {}))
-    return register(model, points, method if stages is None else "default", stages=stages, **options, **extra)
+    stages, extra = (candidates() if tried is None else tried).get(method, (None, {}))
+    shipped = method.split(" w ")[0] if stages is None else "default"
+    return register(model, points, shipped, stages=stages, **options, **extra)

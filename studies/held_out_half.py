@@ -38,6 +38,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from cases import FORMER_DEFAULT  # noqa: E402
+from default_candidates import register_candidate  # noqa: E402
 
 RESULTS = ROOT / "studies" / "results" / "held_out_half.json"
 # seed, expression, weight: seeds apart from the registration study's, expressions from its list
@@ -79,16 +80,6 @@ def candidates() -> dict:
                 (closed_form, Settings("hybrid", 200, lr, beta=1.0, lam=19.0)), {"landmark_weight": weight})
     from default_candidates import candidates as cross_family_candidates   # docs/studies.md §19
     return tried | cross_family_candidates()
-
-
-def register_with(method: str, model, points: np.ndarray, **options):
-    """``register`` with a shipped method or a candidate pipeline of :func:`candidates`."""
-    from statfit.registration.job import register
-
-    stages, extra = candidates().get(method, (None, {}))
-    shipped = method.split(" w ")[0] if stages is None and extra else method
-    return register(model, points, shipped if stages is None else "default", stages=stages, threads=1,
-                    **options, **extra)
 
 
 def smooth_deformation(vertices: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -140,7 +131,7 @@ def fit(method: str, name: str, half: str, k: int) -> dict:
     if method == "mean":
         vertices = landmark_alignment(model, data["landmarks"]).apply(model.template)
     else:
-        result = register_with(method, model, data["seen"], landmarks=data["landmarks"])
+        result = register_candidate(method, model, data["seen"], candidates(), threads=1, landmarks=data["landmarks"])
         vertices, seconds = result.vertices, result.seconds
     held = data["held_landmarks"]
     mm = 10.0  # ICT is in cm
@@ -163,7 +154,7 @@ def in_span(method: str) -> dict:
     errors = {}
     for name in STUDY_SCAN_CASES:
         case = scan_case(name)
-        result = register_with(method, ict_model(), case.points, align="none")
+        result = register_candidate(method, ict_model(), case.points, candidates(), threads=1, align="none")
         errors[name] = float(np.linalg.norm(result.vertices - case.target, axis=1).mean())
     return {"method": method, "in_span": errors}
 
