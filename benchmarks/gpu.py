@@ -2,8 +2,11 @@
 
     python benchmarks/gpu.py [--device cuda] [--quick] [--out FILE.json]
 
-Prints a markdown table: the filter step at 2^20 vertices (k = 100); ``register`` (ICT jaw-open,
-4,300 points) and ``render`` (ICT jaw-open, 512²) at the default and at the paper's settings —
+Prints a markdown table: the filter step at 2^20 vertices (k = 100); one prefactored Laplacian solve
+on ICT's mesh with cholespy and with the dense inverse; ``register`` (ICT jaw-open, 4,300 points) and
+``render`` (ICT jaw-open, 512²) at the default and at the paper's settings (render's also op by op,
+``STATFIT_CUDA_GRAPHS=0``, and its default with the dense solve, which a CUDA graph can capture;
+each row says whether its fit ran as a captured graph, :mod:`statfit.core.graphs`) —
 seconds per fit; ms per iteration, from two runs of every stage cut to 50 and to 250 iterations (the
 difference over the iterations between); the set-up (the 50-iteration run less its iterations:
 pose search, factorisations, model to the device); torch ops and host waits per iteration of each
@@ -17,6 +20,7 @@ from __future__ import annotations
 import argparse
 import collections
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -80,6 +84,23 @@ def filter_step_ms(device: str, vertices: int, k: int = 100, repeats: int = 20) 
     return float(np.median(times))
 
 
+def solve_ms(device: str, model, solver: str, repeats: int = 20) -> float:
+    """One prefactored (I + λL)⁻¹ solve of (N, 3) float32 on ``model``'s mesh (λ = 19), median ms."""
+    from statfit.core.filters import LaplacianFilter
+
+    solve = LaplacianFilter(model.template, model.faces, 19.0, solver=solver, device=device)
+    rhs = torch.randn(len(model.template), 3, device=device)
+    solve(rhs)
+    times = []
+    for _ in range(repeats):
+        synchronize(device)
+        start = time.perf_counter()
+        solve(rhs)
+        synchronize(device)
+        times.append(1e3 * (time.perf_counter() - start))
+    return float(np.median(times))
+
+
 def timed(fit, device: str):
     """One run of ``fit()``: (result, seconds)."""
     synchronize(device)
@@ -122,10 +143,15 @@ def main() -> None:
     from statfit.synth.sample import camera_for_view, sample_target, scan_from_view
     from statfit.structures.normal_map import NormalMap
     from statfit.renderer.images import render_target
+    from statfit.core.fit import StageTimer
 
     rows: dict[str, object] = {"device": torch.cuda.get_device_name() if device == "cuda" else "cpu (1 thread)",
                                "torch": torch.__version__}
     rows["filter step 2^20 (ms)"] = filter_step_ms(device, 1 << (14 if args.quick else 20))
+    ict = load_model(ICT_MODEL)
+    for solver in ("cholespy", "dense"):
+        rows[f"Laplacian solve, ICT's 11,248 vertices, {solver} (ms)"] = solve_ms(device, ict, solver)
+    save(rows, args.out)
 
     embedded = load_model(default_model_path())
     rng = np.random.default_rng(3)
@@ -141,36 +167,47 @@ def main() -> None:
                                        device=device, iterations=it).iterations)
     save(rows, args.out)
 
-    ict = load_model(ICT_MODEL)
     scan = scan_case("jaw-open")
     normals = normal_case("jaw-open", 128 if args.quick else 512)
-    def register_with(method: str, preset: str, iterations: int | None):
+    def register_with(method: str, preset: str, iterations: int | None, **overrides):
         extra = {} if iterations is None else {"iterations": iterations}
-        return lambda: statfit.register(ict, scan.points, method, preset=preset, device=device, **extra)
+        return lambda timer: statfit.register(ict, scan.points, method, preset=preset, device=device, timer=timer,
+                                              **extra, **overrides)
 
-    def render_with(method: str, preset: str, iterations: int | None):
+    def render_with(method: str, preset: str, iterations: int | None, **overrides):
         extra = {} if iterations is None else {"iterations": iterations}
-        return lambda: statfit.reconstruct(ict, normals.normal_map, normals.camera, method, preset=preset,
-                                           device=device, **extra)
+        return lambda timer: statfit.reconstruct(ict, normals.normal_map, normals.camera, method, preset=preset,
+                                                 device=device, timer=timer, **extra, **overrides)
 
     few, more = (10, 30) if args.quick else (50, 250)
-    jobs = {"register default": register_with, "register paper statistical": register_with,
-            "render default": render_with, "render paper statistical": render_with}
-    timed(register_with("pca", "tuned", None), device)      # warm-up: CUDA's start, the caches
-    for name, make in jobs.items():
-        method, preset = ("default", "tuned") if name.endswith("default") else ("statistical", "paper")
-        result, seconds = timed(make(method, preset, None), device) if not args.quick else (None, float("nan"))
-        short, short_seconds = timed(make(method, preset, few), device)
-        long, long_seconds = timed(make(method, preset, more), device)
+    # name: (job, method, preset, CUDA graphs on, whole fit timed, settings overridden)
+    jobs = {"register default": (register_with, "default", "tuned", True, True, {}),
+            "register default, dense solve": (register_with, "default", "tuned", True, True, {"solver": "dense"}),
+            "register paper statistical": (register_with, "statistical", "paper", True, True, {}),
+            "render paper statistical": (render_with, "statistical", "paper", True, True, {}),
+            "render paper statistical, op by op": (render_with, "statistical", "paper", False, False, {}),
+            "render default": (render_with, "default", "tuned", True, True, {}),
+            "render default, dense solve": (render_with, "default", "tuned", True, True, {"solver": "dense"})}
+    timed(lambda: register_with("pca", "tuned", None)(None), device)      # warm-up: CUDA's start, the caches
+    for name, (make, method, preset, graphs_on, whole, overrides) in jobs.items():
+        os.environ["STATFIT_CUDA_GRAPHS"] = "1" if graphs_on else "0"
+        timer = StageTimer()
+        fit = make(method, preset, None, **overrides)
+        result, seconds = timed(lambda: fit(timer), device) if whole and not args.quick else (None, float("nan"))
+        short, short_seconds = timed(lambda: make(method, preset, few, **overrides)(None), device)
+        long, long_seconds = timed(lambda: make(method, preset, more, **overrides)(None), device)
         per_iteration_s = (long_seconds - short_seconds) / max(long.iterations - short.iterations, 1)
         rows[f"{name}: s per fit"] = seconds
         rows[f"{name}: iterations"] = None if result is None else result.iterations
         rows[f"{name}: ms/it"] = 1e3 * per_iteration_s
         rows[f"{name}: set-up s"] = short_seconds - short.iterations * per_iteration_s
-        print(f"{name}: {seconds:.2f} s, {1e3 * per_iteration_s:.2f} ms/it", file=sys.stderr, flush=True)
+        rows[f"{name}: CUDA graph"] = "; ".join(sorted(set(timer.notes.values()))) or "-"
+        print(f"{name}: {seconds:.2f} s, {1e3 * per_iteration_s:.2f} ms/it, graph {rows[f'{name}: CUDA graph']}",
+              file=sys.stderr, flush=True)
         save(rows, args.out)
+    os.environ.pop("STATFIT_CUDA_GRAPHS", None)
 
-    count = 4 if args.quick else 16
+    count = 4 if args.quick else 8
     scans = []
     for seed in range(count):
         person_rng = np.random.default_rng(100 + seed)

@@ -5,6 +5,9 @@
 - statistical:  F = α UUᵀ + (1 − α) I,  α = β / (1 + β)      = (I + β(I − UUᵀ))⁻¹
 - hybrid:       F = α UUᵀ + (1 − α)(I + λL)⁻¹
 
+``capturable``: whether a CUDA graph can capture the filter (all but a Laplacian solved by a
+solver whose kernels leave torch's stream).
+
 The statistical filter is applied as ``e⊥ g + Uᵀᵀ((e − e⊥) ⊙ (Uᵀ g))`` with the basis stored
 transposed, (K, 3N) contiguous, so each mat-vec streams it once (on every thread:
 :mod:`statfit.core.matvec`). ``mode_gain`` generalises the eigenvalue 1 on the model subspace to one gain
@@ -29,6 +32,8 @@ def beta_with_power(beta: float, power: float) -> float:
 class IdentityFilter:
     """F = I."""
 
+    capturable = True
+
     def __call__(self, g: torch.Tensor) -> torch.Tensor:
         return g
 
@@ -50,6 +55,11 @@ class LaplacianFilter:
         filt._solver = make_solver(identity_plus(laplacian, lam), solver, dtype, device)
         return filt
 
+    @property
+    def capturable(self) -> bool:
+        """Whether a CUDA graph can capture the solve (the ``dense`` solver's product)."""
+        return self._solver.capturable
+
     def __call__(self, g: torch.Tensor) -> torch.Tensor:
         return self._solver.solve(g)
 
@@ -60,6 +70,8 @@ class StatisticalFilter:
     ``basis_t``: (K, 3N) orthonormal rows. β' = (1 + β)^power − 1. With the default gains this is
     exactly α UUᵀ + (1 − α) I = (I + β'(I − UUᵀ))⁻¹.
     """
+
+    capturable = True
 
     def __init__(self, basis_t: torch.Tensor, beta: float, power: float = 1.0,
                  mode_gain: torch.Tensor | None = None):
@@ -90,6 +102,7 @@ class HybridFilter:
         self._gain = (torch.full((basis_t.shape[0],), alpha, dtype=basis_t.dtype, device=basis_t.device)
                       if mode_gain is None else alpha * mode_gain.to(basis_t))
         self._smooth = laplacian_filter
+        self.capturable = laplacian_filter.capturable
 
     def __call__(self, g: torch.Tensor) -> torch.Tensor:
         flat = g.reshape(-1)

@@ -12,6 +12,7 @@ from typing import Callable, Protocol
 
 import torch
 
+from statfit.core.graphs import CapturedIteration, capturable
 from statfit.errors import DivergenceError
 
 
@@ -24,7 +25,12 @@ class Objective(Protocol):
     ``deferred_checks = True`` (optional attribute) says the objective survives non-finite vertices
     until the next record step (its ``prepare`` raises DivergenceError where it cannot): the loop
     then checks for divergence at record steps only, with the loss values in one host read, and no
-    other iteration waits for the device. Without it the vertices are checked every iteration."""
+    other iteration waits for the device. Without it the vertices are checked every iteration.
+
+    ``capturable = True`` (optional) says a CUDA graph can capture a whole iteration with it
+    (:mod:`statfit.core.graphs`: static shapes, no host reads, ``prepare`` does nothing, checks
+    deferred); such an objective has ``replayed() -> bool``, called after each replay, True when
+    the captured iteration no longer fits its buffers."""
 
     def prepare(self, vertices: torch.Tensor, iteration: int) -> None: ...
 
@@ -54,6 +60,7 @@ class StageTimer:
 
     sync: bool = False
     seconds: dict[str, float] = field(default_factory=lambda: defaultdict(float))
+    notes: dict[str, str] = field(default_factory=dict)     # e.g. "graph": whether the loop was captured
 
     @classmethod
     def for_device(cls, device: torch.device) -> StageTimer:
@@ -120,8 +127,9 @@ def _loop(param: Parametrization, optimizer: torch.optim.Optimizer, objective: O
     # check for divergence at its record steps only: no host wait in the other iterations.
     deferred = bool(getattr(objective, "deferred_checks", False))
     pending: list[torch.Tensor] = []    # the total loss of every iteration since the last record
-    for step in range(iterations):
-        it = first_iteration + step
+    it = first_iteration
+
+    def iterate() -> tuple[torch.Tensor, dict[str, torch.Tensor], torch.Tensor]:
         with timer("filter"):
             x = param.vertices()
         if not deferred and not bool(torch.isfinite(x.detach()).all()):
@@ -143,6 +151,21 @@ def _loop(param: Parametrization, optimizer: torch.optim.Optimizer, objective: O
         with timer("step"):
             for each in optimizers:
                 each.step()
+        return x, losses, loss
+
+    parameters = param.parameters()
+    captured = CapturedIteration(iterate, optimizers, objective) \
+        if parameters and capturable(objective, optimizers, parameters[0].device, param) else None
+    for step in range(iterations):
+        it = first_iteration + step
+        if captured is None:
+            x, losses, loss = iterate()
+        elif not captured.ready():
+            x, losses, loss = captured.eager()
+        else:
+            with timer("graph"):
+                x, losses, loss = captured.replay()
+                loss = loss.clone()     # the next replay overwrites the total; the record reads it later
         pending.append(loss)
         if step % record_every == 0 or step == iterations - 1:
             terms = _record_terms(losses, pending, x, it, deferred)
@@ -150,7 +173,9 @@ def _loop(param: Parametrization, optimizer: torch.optim.Optimizer, objective: O
             if on_record:
                 on_record(it, terms)
             if on_snapshot:
-                on_snapshot(it, x.detach())
+                on_snapshot(it, x.detach().clone())
+    if captured is not None:
+        timer.notes["graph"] = captured.failure or f"captured {captured.captures}×"
     with torch.no_grad():
         final = param.vertices().detach()
     if not bool(torch.isfinite(final).all()):

@@ -1,16 +1,23 @@
 """UniformAdam (Nicolet et al. 2021): Adam whose step is divided by the square root of the
 *largest* bias-corrected second moment instead of each entry's own, so the step direction
-is the filtered gradient's direction (per-entry scaling would undo the filter)."""
+is the filtered gradient's direction (per-entry scaling would undo the filter).
+
+:func:`make_capturable` turns an optimiser's step count into a tensor on its parameters' device, so
+the step can be captured in a CUDA graph (its bias corrections then change on every replay)."""
 from __future__ import annotations
 
 import torch
 
 
 class UniformAdam(torch.optim.Optimizer):
-    """``p -= lr * m̂ / (eps + sqrt(max(v̂)))`` with Adam's moment estimates m̂, v̂."""
+    """``p -= lr * m̂ / (eps + sqrt(max(v̂)))`` with Adam's moment estimates m̂, v̂.
 
-    def __init__(self, params, lr: float = 0.01, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8):
-        super().__init__(params, dict(lr=lr, betas=betas, eps=eps))
+    ``capturable``: the step count t is a tensor on the parameter's device and the bias corrections
+    are computed there (a few more, tiny ops; no value of t is baked into the launched kernels)."""
+
+    def __init__(self, params, lr: float = 0.01, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8,
+                 capturable: bool = False):
+        super().__init__(params, dict(lr=lr, betas=betas, eps=eps, capturable=capturable))
 
     @torch.no_grad()
     def step(self, closure=None):
@@ -24,9 +31,46 @@ class UniformAdam(torch.optim.Optimizer):
                     state["step"] = 0
                     state["m"] = torch.zeros_like(p)
                     state["v"] = torch.zeros_like(p)
-                state["step"] += 1
-                m, v, t = state["m"], state["v"], state["step"]
+                m, v = state["m"], state["v"]
                 m.mul_(b1).add_(p.grad, alpha=1 - b1)
                 v.mul_(b2).addcmul_(p.grad, p.grad, value=1 - b2)
+                if group["capturable"]:
+                    t = _step_tensor(state, p).add_(1)
+                    denom = (v.max() / (1 - b2 ** t)).sqrt_().add_(group["eps"])
+                    p.sub_(m.mul(group["lr"] / (1 - b1 ** t)).div_(denom))
+                    continue
+                state["step"] += 1
+                t = state["step"]
                 denom = (v.max() / (1 - b2**t)).sqrt_().add_(group["eps"])
                 p.sub_(m / denom, alpha=group["lr"] / (1 - b1**t))
+
+
+def _step_tensor(state: dict, p: torch.Tensor) -> torch.Tensor:
+    """The state's step count as a float64 tensor () on ``p``'s device (converted once)."""
+    step = state["step"]
+    if not isinstance(step, torch.Tensor) or step.device != p.device or step.dtype != torch.float64:
+        step = state["step"] = torch.as_tensor(float(step), dtype=torch.float64, device=p.device)
+    return step
+
+
+def make_capturable(optimizer: torch.optim.Optimizer) -> bool:
+    """Switch ``optimizer`` (UniformAdam or torch's Adam) to steps that a CUDA graph can capture,
+    keeping its state; False (and unchanged) for any other optimiser."""
+    if not isinstance(optimizer, (UniformAdam, torch.optim.Adam)):
+        return False
+    if isinstance(optimizer, torch.optim.Adam):
+        if any(group.get(flag) for group in optimizer.param_groups for flag in ("fused", "differentiable")):
+            return False
+        for group in optimizer.param_groups:
+            group["capturable"] = True
+            for p in group["params"]:
+                state = optimizer.state.get(p)
+                if state and "step" in state:
+                    state["step"] = state["step"].to(device=p.device, dtype=torch.float32)
+        return True
+    for group in optimizer.param_groups:
+        group["capturable"] = True
+        for p in group["params"]:
+            if optimizer.state.get(p):
+                _step_tensor(optimizer.state[p], p)
+    return True

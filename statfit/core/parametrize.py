@@ -5,6 +5,8 @@ torch loss on x drives them through ``loss.backward()``.
 - PCACoefficients:     x = x̄ + B c,  B = U diag(std)
 - RegularizedVertices: x free, prior β/N ‖(I − UUᵀ)(x − x̄)‖² (gradient in the vertices' backward)
 
+``capturable``: whether a CUDA graph can capture ``vertices()`` (its filter's, for FilteredVertices).
+
 Every map is linear, so each is one autograd function whose backward is one explicit product
 (the filter again, F being symmetric; Bᵀ for the coefficients): no graph of the filter's inner
 operations is kept. ``x = x0 + F u`` with u₀ = 0 follows the same trajectory as Nicolet et al.'s
@@ -73,6 +75,7 @@ class FilteredVertices:
         self.x0 = x0
         self.filter = filter
         self.u = torch.zeros_like(x0, requires_grad=True)
+        self.capturable = bool(getattr(filter, "capturable", False))
 
     def parameters(self) -> list[torch.Tensor]:
         return [self.u]
@@ -87,6 +90,8 @@ class FilteredVertices:
 class PCACoefficients:
     """x = x̄ + B c with ``basis_t`` = Bᵀ (K, 3N); c starts at ``coeffs`` (default 0); ``prior``
     w adds the term w · mean(c²) (c in standard deviations when B holds them)."""
+
+    capturable = True
 
     def __init__(self, mean: torch.Tensor, basis_t: torch.Tensor, coeffs: torch.Tensor | None = None,
                  prior: float = 0.0):
@@ -115,6 +120,8 @@ class PCACoefficients:
 class RegularizedVertices:
     """Free vertices with the prior β/N ‖(I − UUᵀ)(x − x̄)‖² (``basis_t`` = Uᵀ, (K, 3N)): the
     prior's gradient comes with the vertices' backward; ``prior`` reports its value."""
+
+    capturable = True
 
     def __init__(self, x0: torch.Tensor, mean: torch.Tensor, basis_t: torch.Tensor, beta: float):
         self.x = x0.detach().clone().requires_grad_(True)

@@ -7,6 +7,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from statfit.core.graphs import CapturedIteration, capturable
 from statfit.geometry.align import Similarity
 from statfit.structures.camera import Camera
 from statfit.structures.frame import Frame
@@ -80,23 +81,38 @@ def fit_pose(vertices: torch.Tensor, loss: Loss, *, with_scale: bool = False, it
         translation = shift + free @ step
         return log_scale.exp() * shape() @ rotation.T + centre + translation, rotation, translation
 
-    best, best_value = None, float("inf")
-    for _ in range(iterations):
+    # The best pose seen, kept on the device (no host read an iteration): value, scale, R, t, shape.
+    best = [torch.full((), torch.inf, dtype=dtype, device=device), log_scale.detach().exp(), base.clone(),
+            shift.clone(), vertices.detach().clone()]
+
+    def iterate() -> tuple[torch.Tensor, dict[str, torch.Tensor], torch.Tensor]:
         optimizer.zero_grad(set_to_none=True)
         y, rotation, translation = posed()
         value = sum(loss(y).values()) + shape_prior * coefficients.square().sum()
-        if float(value.detach()) < best_value:
-            best_value = float(value.detach())
-            best = (float(log_scale.detach().exp()), rotation.detach(), translation.detach(),
-                    (shape() + centre).detach())
+        with torch.no_grad():
+            better = value < best[0]
+            seen = (value, log_scale.exp(), rotation, translation, shape() + centre)
+            for kept, now in zip(best, seen):
+                kept.copy_(torch.where(better, now, kept))
         value.backward()
         optimizer.step()
-    scale, rotation, translation, best_shape = best
+        return y, {"value": value}, value
+
+    captured = CapturedIteration(iterate, [optimizer], loss) if capturable(loss, [optimizer], device) else None
+    for _ in range(iterations):
+        if captured is None:
+            iterate()
+        elif captured.ready():
+            captured.replay()
+        else:
+            captured.eager()
+    best_value, scale, rotation, translation, best_shape = best
     rotation = rotation.double().cpu().numpy()
     centre64 = centre.double().cpu().numpy()
     # y = s R (x − c) + c + t  ⇒  t' = c + t − s R c
+    scale = float(scale)
     pose = Similarity(scale, rotation, centre64 + translation.double().cpu().numpy() - scale * rotation @ centre64)
-    return PoseFit(pose, best_shape, best_value)
+    return PoseFit(pose, best_shape, float(best_value))
 
 
 def camera_in_frame(camera: Camera, frame: Frame, pose: Similarity = Similarity()) -> Camera:

@@ -1,7 +1,10 @@
 """Prefactored sparse SPD solvers: factorise once, then each call only solves.
 
 All take and return torch tensors of shape (n, c) on the solver's device. Measured choice of the
-default: see docs/studies.md (``cholespy``, the solver largesteps uses, was fastest).
+default: see docs/studies.md (``cholespy``, the solver largesteps uses, was fastest). ``dense`` keeps
+the inverse as a matrix: on a GPU one product a solve, which a CUDA graph can capture (cholespy's
+kernels run on CUDA's legacy stream, outside any capture); ``auto`` picks it there for meshes that
+fit (:func:`auto_solver`).
 """
 from __future__ import annotations
 
@@ -11,11 +14,18 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 
-SOLVERS: tuple[str, ...] = ("cholespy", "scipy-lu", "igl")
+from statfit.errors import StatfitError
+
+SOLVERS: tuple[str, ...] = ("cholespy", "scipy-lu", "igl", "dense", "auto")
+# The dense inverse holds n² numbers: 1 GB in float32 at this size.
+DENSE_LIMIT = 16_384
 
 
 class CholespySolver:
-    """Sparse Cholesky (CHOLMOD on CPU, cuSolver-free kernels on CUDA) from the cholespy package."""
+    """Sparse Cholesky (CHOLMOD on CPU, cuSolver-free kernels on CUDA) from the cholespy package.
+    Not capturable in a CUDA graph: its kernels run on CUDA's legacy default stream."""
+
+    capturable = False
 
     def __init__(self, matrix: sp.spmatrix, dtype: torch.dtype, device: torch.device):
         import cholespy
@@ -38,6 +48,8 @@ class CholespySolver:
 class ScipyLUSolver:
     """scipy's SuperLU factorisation (``splu``); solves on the CPU."""
 
+    capturable = False
+
     def __init__(self, matrix: sp.spmatrix, dtype: torch.dtype, device: torch.device):
         self.dtype, self.device = dtype, device
         self._lu = spla.splu(sp.csc_matrix(matrix, dtype=np.float64))
@@ -49,6 +61,8 @@ class ScipyLUSolver:
 
 class IglSolver:
     """libigl's ``min_quad_with_fixed`` (Eigen sparse LLT); solves on the CPU in float64."""
+
+    capturable = False
 
     def __init__(self, matrix: sp.spmatrix, dtype: torch.dtype, device: torch.device):
         self.dtype, self.device = dtype, device
@@ -64,11 +78,40 @@ class IglSolver:
         return torch.as_tensor(out, dtype=self.dtype, device=self.device)
 
 
+class DenseSolver:
+    """The inverse as a dense (n, n) matrix, from a Cholesky factorisation in float64 on the device;
+    each solve is one matrix product (one kernel, capturable in a CUDA graph). For meshes of at most
+    :data:`DENSE_LIMIT` vertices (the inverse takes n² numbers)."""
+
+    capturable = True
+
+    def __init__(self, matrix: sp.spmatrix, dtype: torch.dtype, device: torch.device):
+        n = matrix.shape[0]
+        if n > DENSE_LIMIT:
+            raise StatfitError(f"the dense solver takes meshes of at most {DENSE_LIMIT:,} vertices, not {n:,}; "
+                               "use the cholespy solver")
+        self.dtype, self.device = dtype, device
+        full = torch.as_tensor(sp.csr_matrix(matrix, dtype=np.float64).toarray(), device=device)
+        self._inverse = torch.cholesky_inverse(torch.linalg.cholesky(full)).to(dtype)
+        del full
+
+    def solve(self, rhs: torch.Tensor) -> torch.Tensor:
+        return self._inverse @ rhs.to(self.dtype)
+
+
+def auto_solver(n: int, device: torch.device) -> str:
+    """``dense`` on CUDA for at most :data:`DENSE_LIMIT` unknowns (one product a solve, which a CUDA
+    graph captures), else ``cholespy``."""
+    return "dense" if device.type == "cuda" and n <= DENSE_LIMIT else "cholespy"
+
+
 def make_solver(matrix: sp.spmatrix, name: str = "cholespy", dtype: torch.dtype = torch.float32,
                 device: torch.device | str = "cpu"):
-    """Factorise the SPD ``matrix`` with the named solver."""
+    """Factorise the SPD ``matrix`` with the named solver; ``auto``: :func:`auto_solver`'s choice."""
     device = torch.device(device)
-    classes = {"cholespy": CholespySolver, "scipy-lu": ScipyLUSolver, "igl": IglSolver}
+    if name == "auto":
+        name = auto_solver(matrix.shape[0], device)
+    classes = {"cholespy": CholespySolver, "scipy-lu": ScipyLUSolver, "igl": IglSolver, "dense": DenseSolver}
     if name not in classes:
         raise ValueError(f"unknown solver {name!r}; choose one of {', '.join(SOLVERS)}")
     return classes[name](matrix, dtype, device)

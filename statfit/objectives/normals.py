@@ -36,6 +36,7 @@ class NormalMapObjective:
     """
 
     deferred_checks = True
+    capturable = True       # static shapes, no host reads: a CUDA graph can capture it (statfit.core.graphs)
 
     def __init__(self, normals: torch.Tensor, mask: torch.Tensor, camera: Camera, faces: torch.Tensor,
                  silhouette_weight: float = SILHOUETTE_WEIGHT, adjacency: MeshAdjacency | None = None,
@@ -71,6 +72,11 @@ class NormalMapObjective:
 
     def reset(self) -> None:
         """Nothing is kept between calls (the renderer's buffers are sizes, not state)."""
+
+    def replayed(self) -> bool:
+        """After a replay of a captured call: whether the renderer's buffers were found too small
+        (then the next call must run eagerly, to size them afresh)."""
+        return self._renderer is not None and self._renderer.replayed()
 
     def __call__(self, vertices: torch.Tensor) -> dict[str, torch.Tensor]:
         if self._renderer is None or self._renderer.dtype != vertices.dtype:

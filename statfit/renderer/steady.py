@@ -125,18 +125,26 @@ class SteadyRenderer:
         return self._aranges[size]
 
     def _check(self, need: torch.Tensor) -> None:
-        """Keep the largest need (on the device); every ``CHECK_EVERY`` calls read whether it
-        exceeded a buffer (one host read) and, if so, forget the sizes of those buffers."""
-        self._need = need if self._need is None else torch.maximum(self._need, need)
+        """Keep the largest need (on the device, in place) and count the call (:meth:`replayed`),
+        unless a CUDA graph is capturing it: then whoever replays it counts."""
+        self._need = need.clone() if self._need is None else torch.maximum(self._need, need, out=self._need)
+        if not (self.device.type == "cuda" and torch.cuda.is_current_stream_capturing()):
+            self.replayed()
+
+    def replayed(self) -> bool:
+        """Count a call (or a replay); every ``CHECK_EVERY`` read whether the largest need since
+        the last read exceeded a buffer (one host read) and forget those buffers' sizes: True if
+        any was (the next call sizes them afresh, a host read: not while a graph captures it)."""
         self._calls += 1
-        if self._calls % CHECK_EVERY == 0:
-            sizes = torch.tensor([self._sizes[name] for name in _BUFFERS], device=self.device)
-            over = self._need > sizes
-            self._need = None
-            if bool(over.any()):
-                for name, too_small in zip(_BUFFERS, over.tolist()):
-                    if too_small:
-                        del self._sizes[name]
+        if self._calls % CHECK_EVERY or self._need is None:
+            return False
+        sizes = torch.tensor([self._sizes[name] for name in _BUFFERS], device=self.device)
+        over = (self._need > sizes).tolist()
+        self._need.zero_()
+        for name, too_small in zip(_BUFFERS, over):
+            if too_small:
+                del self._sizes[name]
+        return any(over)
 
     # --- the view -----------------------------------------------------------------------------------------
 
