@@ -42,12 +42,12 @@ class LaplacianFilter:
     """F = (I + λL)⁻¹, factorised once at construction."""
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, lam: float, kind: LaplacianKind = "uniform",
-                 solver: str = "cholespy", dtype: torch.dtype = torch.float32, device: str | torch.device = "cpu"):
+                 solver: str = "auto", dtype: torch.dtype = torch.float32, device: str | torch.device = "cpu"):
         self.lam = lam
         self._solver = make_solver(smoothing_matrix(vertices, faces, lam, kind), solver, dtype, device)
 
     @classmethod
-    def from_laplacian(cls, laplacian: sp.spmatrix, lam: float, solver: str = "cholespy",
+    def from_laplacian(cls, laplacian: sp.spmatrix, lam: float, solver: str = "auto",
                        dtype: torch.dtype = torch.float32, device: str | torch.device = "cpu") -> "LaplacianFilter":
         """The filter for a ready Laplacian ``L`` (N, N), e.g. an image grid's."""
         filt = cls.__new__(cls)

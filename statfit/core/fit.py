@@ -162,6 +162,7 @@ def _loop(param: Parametrization, optimizer: torch.optim.Optimizer, objective: O
             x, losses, loss = iterate()
         elif not captured.ready():
             x, losses, loss = captured.eager()
+            loss = loss.detach()    # held until the record: not its autograd graph across the capture
         else:
             with timer("graph"):
                 x, losses, loss = captured.replay()

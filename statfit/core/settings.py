@@ -30,7 +30,8 @@ class Settings:
 
     ``beta``: the filter's β (statistical, hybrid) or the regulariser's weight (regularized);
     ``power`` p turns β into β' = (1+β)^p − 1; ``lam``: λ of the Laplacian (``laplacian``: its kind,
-    ``solver``: how (I + λL) is factorised); ``mode_gain`` γ sets the filter's gain on mode j to
+    ``solver``: how (I + λL) is factorised; ``auto``: cholespy, or on CUDA the dense inverse where it
+    fits, :func:`statfit.core.solvers.auto_solver`); ``mode_gain`` γ sets the filter's gain on mode j to
     (std_j / std_1)^γ (0: the paper's filter, gain 1 on every mode). ``optimizer`` is "adam"
     (Adam, or UniformAdam for filtered methods; ``lr``, ``adam_betas``) or "gauss-newton" (pca on a scan:
     the closed-form coefficient solve, ``iterations`` an upper bound, ``noise`` σ the residual noise
@@ -48,7 +49,7 @@ class Settings:
     power: float = 1.0
     lam: float = 19.0
     laplacian: str = "uniform"
-    solver: str = "cholespy"
+    solver: str = "auto"
     mode_gain: float = 0.0
     adam_betas: tuple[float, float] = (0.9, 0.999)
     optimizer: str = "adam"

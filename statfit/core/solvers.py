@@ -91,9 +91,11 @@ class DenseSolver:
             raise StatfitError(f"the dense solver takes meshes of at most {DENSE_LIMIT:,} vertices, not {n:,}; "
                                "use the cholespy solver")
         self.dtype, self.device = dtype, device
-        full = torch.as_tensor(sp.csr_matrix(matrix, dtype=np.float64).toarray(), device=device)
+        coo = sp.coo_matrix(matrix)
+        index = torch.as_tensor(np.stack([coo.row, coo.col]).astype(np.int64), device=device)
+        values = torch.as_tensor(coo.data.astype(np.float64), device=device)
+        full = torch.sparse_coo_tensor(index, values, (n, n)).to_dense()       # duplicates summed
         self._inverse = torch.cholesky_inverse(torch.linalg.cholesky(full)).to(dtype)
-        del full
 
     def solve(self, rhs: torch.Tensor) -> torch.Tensor:
         return self._inverse @ rhs.to(self.dtype)
