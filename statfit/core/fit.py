@@ -161,11 +161,10 @@ def _loop(param: Parametrization, optimizer: torch.optim.Optimizer, objective: O
         if captured is None:
             x, losses, loss = iterate()
         elif not captured.ready():
-            x, losses, loss = captured.eager()
-            loss = loss.detach()    # held until the record: not its autograd graph across the capture
+            x, losses, loss = _detached(*captured.eager())
         else:
             with timer("graph"):
-                x, losses, loss = captured.replay()
+                x, losses, loss = _detached(*captured.replay())
                 loss = loss.clone()     # the next replay overwrites the total; the record reads it later
         pending.append(loss)
         if step % record_every == 0 or step == iterations - 1:
@@ -183,6 +182,13 @@ def _loop(param: Parametrization, optimizer: torch.optim.Optimizer, objective: O
         raise DivergenceError(f"the fit diverged at iteration {first_iteration + iterations - 1}: "
                               "vertices are not finite (step size too large?)")
     return FitResult(final, terms, iterations, time.perf_counter() - start)
+
+
+def _detached(x: torch.Tensor, losses: dict[str, torch.Tensor], loss: torch.Tensor
+              ) -> tuple[torch.Tensor, dict[str, torch.Tensor], torch.Tensor]:
+    """An iteration's outputs without their autograd graph: held until the next record, a graph kept
+    alive across a CUDA graph's capture would tie the parameters' gradient to another stream."""
+    return x.detach(), {name: value.detach() for name, value in losses.items()}, loss.detach()
 
 
 def host_values(values: torch.Tensor) -> list:

@@ -92,9 +92,9 @@ class DenseSolver:
                                "use the cholespy solver")
         self.dtype, self.device = dtype, device
         coo = sp.coo_matrix(matrix)
-        index = torch.as_tensor(np.stack([coo.row, coo.col]).astype(np.int64), device=device)
+        rows, cols = (torch.as_tensor(each.astype(np.int64), device=device) for each in (coo.row, coo.col))
         values = torch.as_tensor(coo.data.astype(np.float64), device=device)
-        full = torch.sparse_coo_tensor(index, values, (n, n)).to_dense()       # duplicates summed
+        full = torch.zeros(n, n, dtype=torch.float64, device=device).index_put_((rows, cols), values, accumulate=True)
         self._inverse = torch.cholesky_inverse(torch.linalg.cholesky(full)).to(dtype)
 
     def solve(self, rhs: torch.Tensor) -> torch.Tensor:
