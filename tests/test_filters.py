@@ -110,3 +110,29 @@ def test_filters_are_symmetric(sphere, rng):
     for filt in (StatisticalFilter(u, 10.0), lap, HybridFilter(u, 10.0, lap)):
         a, b = rng.standard_normal(n3), rng.standard_normal(n3)
         assert apply(filt, a) @ b == pytest.approx(a @ apply(filt, b), rel=1e-10)
+
+
+def test_a_factorisation_is_reused_for_the_same_mesh_and_lambda_only():
+    """Stages and fits of one mesh and λ share a factorisation (the same solver, the same solves);
+    another λ, another mesh or another thread factorises afresh."""
+    import threading
+
+    from statfit.core.filters import KEPT_FACTORISATIONS, LaplacianFilter
+
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    first = LaplacianFilter(vertices, faces, 19.0)
+    again = LaplacianFilter(vertices.copy(), faces.copy(), 19.0)
+    assert again._solver is first._solver
+    assert LaplacianFilter(vertices, faces, 5.0)._solver is not first._solver
+    other = trimesh.creation.icosphere(subdivisions=2)
+    assert LaplacianFilter(np.asarray(other.vertices), np.asarray(other.faces), 19.0)._solver is not first._solver
+    assert KEPT_FACTORISATIONS == 2   # the two above pushed the first one out
+    assert LaplacianFilter(vertices, faces, 19.0)._solver is not first._solver
+    elsewhere = []
+    thread = threading.Thread(target=lambda: elsewhere.append(LaplacianFilter(vertices, faces, 19.0)._solver))
+    thread.start()
+    thread.join()
+    assert elsewhere[0] is not LaplacianFilter(vertices, faces, 19.0)._solver
+    g = torch.randn(len(vertices), 3)
+    torch.testing.assert_close(again(g), LaplacianFilter(vertices, faces, 19.0)(g))

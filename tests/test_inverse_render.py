@@ -222,3 +222,19 @@ def test_similarity_alignment_takes_a_map_in_other_units(embedded_model):
     assert 800 < fit.transform.scale < 1250
     _, covered = render_target(fit.vertices, embedded_model.faces, camera)
     assert (covered & normal_map.mask).sum() > 0.9 * (covered | normal_map.mask).sum()
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-9, 1e-5, 1e-3, 0.3, 2.0, 3.1])
+def test_rodrigues_is_the_matrix_exponential_with_its_gradient(angle):
+    """The pose's rotation (Rodrigues' formula, which a CUDA graph can capture) against torch's
+    matrix exponential of the skew matrix: the same matrix and the same gradient, at ω = 0 too."""
+    from statfit.core.pose import _skew, rotation_of
+
+    omega = (angle * torch.nn.functional.normalize(torch.tensor([0.3, -1.0, 0.6], dtype=torch.float64), dim=0)
+             ).requires_grad_()
+    weights = torch.linspace(-1.0, 1.0, 9, dtype=torch.float64).view(3, 3)
+    ours, reference = rotation_of(omega), torch.linalg.matrix_exp(_skew(omega))
+    torch.testing.assert_close(ours, reference, rtol=0, atol=1e-14)
+    gradient, = torch.autograd.grad((ours * weights).sum(), omega)
+    expected, = torch.autograd.grad((reference * weights).sum(), omega)
+    torch.testing.assert_close(gradient, expected, rtol=0, atol=1e-12)

@@ -15,6 +15,10 @@ per mode (e.g. proportional to the modes' standard deviations, so low-variance m
 """
 from __future__ import annotations
 
+import collections
+import hashlib
+import threading
+
 import numpy as np
 import scipy.sparse as sp
 import torch
@@ -38,13 +42,32 @@ class IdentityFilter:
         return g
 
 
+# Factorisations kept per thread, the latest few: a pipeline's stages with one λ (render's default:
+# three) and a batch's fits of one model factorise once (a solver is not shared between threads).
+KEPT_FACTORISATIONS = 2
+_kept = threading.local()
+
+
 class LaplacianFilter:
-    """F = (I + λL)⁻¹, factorised once at construction."""
+    """F = (I + λL)⁻¹, factorised at construction, or taken from the last :data:`KEPT_FACTORISATIONS`
+    of this thread when one was made of the same mesh (the faces; the vertices too for a cotangent
+    Laplacian), λ, solver, dtype and device."""
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, lam: float, kind: LaplacianKind = "uniform",
                  solver: str = "auto", dtype: torch.dtype = torch.float32, device: str | torch.device = "cpu"):
         self.lam = lam
-        self._solver = make_solver(smoothing_matrix(vertices, faces, lam, kind), solver, dtype, device)
+        digest = hashlib.blake2b(np.ascontiguousarray(faces, dtype=np.int64).tobytes(), digest_size=16)
+        if kind != "uniform":
+            digest.update(np.ascontiguousarray(vertices, dtype=np.float64).tobytes())
+        key = (digest.hexdigest(), len(vertices), float(lam), kind, solver, dtype, str(torch.device(device)))
+        kept: collections.OrderedDict = getattr(_kept, "solvers", None) or collections.OrderedDict()
+        _kept.solvers = kept
+        if key not in kept:
+            kept[key] = make_solver(smoothing_matrix(vertices, faces, lam, kind), solver, dtype, device)
+            while len(kept) > KEPT_FACTORISATIONS:
+                kept.popitem(last=False)
+        kept.move_to_end(key)
+        self._solver = kept[key]
 
     @classmethod
     def from_laplacian(cls, laplacian: sp.spmatrix, lam: float, solver: str = "auto",

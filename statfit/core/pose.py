@@ -34,6 +34,20 @@ def _skew(omega: torch.Tensor) -> torch.Tensor:
     return torch.stack([torch.stack([zero, -z, y]), torch.stack([z, zero, -x]), torch.stack([-y, x, zero])])
 
 
+def rotation_of(omega: torch.Tensor) -> torch.Tensor:
+    """exp([ω]×) (3, 3) for a rotation vector ω (3,), by Rodrigues' formula
+    I + (sin θ/θ) K + ((1 − cos θ)/θ²) K², K = [ω]×, θ = |ω| (the series below 1e-4 rad, with finite
+    gradients at ω = 0). ``torch.linalg.matrix_exp`` gives the same matrix, but on CUDA it reads the
+    norm back to the host (forward and backward): no CUDA graph could capture it."""
+    skew = _skew(omega)
+    squared = omega.square().sum()
+    small = squared < 1e-8
+    theta = torch.where(small, 1.0, squared).sqrt()
+    first = torch.where(small, 1.0 - squared / 6.0, theta.sin() / theta)
+    second = torch.where(small, 0.5 - squared / 24.0, (1.0 - theta.cos()) / torch.where(small, 1.0, squared))
+    return torch.eye(3, dtype=omega.dtype, device=omega.device) + first * skew + second * (skew @ skew)
+
+
 def fit_pose(vertices: torch.Tensor, loss: Loss, *, with_scale: bool = False, iterations: int = 200,
              lr: float = 0.01, start: Similarity | None = None, fixed_axis: torch.Tensor | None = None,
              shape_basis: torch.Tensor | None = None, shape_prior: float = SHAPE_PRIOR, shape_lr: float | None = None,
@@ -77,7 +91,7 @@ def fit_pose(vertices: torch.Tensor, loss: Loss, *, with_scale: bool = False, it
         return centred + torch.tensordot(coefficients, shape_basis, dims=1)
 
     def posed() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        rotation = torch.linalg.matrix_exp(_skew(omega)) @ base
+        rotation = rotation_of(omega) @ base
         translation = shift + free @ step
         return log_scale.exp() * shape() @ rotation.T + centre + translation, rotation, translation
 
