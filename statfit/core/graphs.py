@@ -17,7 +17,9 @@ one replay. What the capture needs of the parts (and what :func:`capturable` che
 
 The replays run the captured kernels in the captured order on the same memory, so a replayed
 iteration computes what the eager one does (the optimiser's bias corrections from a device-side
-step count: equal to float rounding). ``STATFIT_CUDA_GRAPHS=0`` turns capturing off.
+step count: equal to float rounding). ``STATFIT_CUDA_GRAPHS=0`` turns capturing off. Used by the
+fitting loop (:mod:`statfit.core.fit`) and the pose search of inverse rendering
+(:mod:`statfit.core.pose`). Measured on an H100: a render iteration 14.9 → 6.0 ms (docs/benchmarks.md §12).
 """
 from __future__ import annotations
 
