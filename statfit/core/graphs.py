@@ -98,7 +98,8 @@ class CapturedIteration:
             each.zero_grad(set_to_none=True)
         graph = torch.cuda.CUDAGraph()
         try:
-            with torch.cuda.graph(graph):
+            # thread_local: another thread's fit launching kernels meanwhile is neither captured nor refused.
+            with torch.cuda.graph(graph, capture_error_mode="thread_local"):
                 outputs = self._iterate()
         except Exception as error:  # noqa: BLE001 — a capture that fails leaves the fit eager, never broken
             self.failure = f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"
