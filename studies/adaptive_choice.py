@@ -18,7 +18,9 @@ validation fits. Reported per (people, model) pair: the mean held-out error of t
 ``laplacian``, the choice, the better of the two per case (the oracle), and how often the choice
 agrees with the oracle.
 
-    python studies/adaptive_choice.py --people 2      # ~10 min on 2 cores, after cross_family_landmarks.py
+    python studies/adaptive_choice.py --people 2      # ~5 min on 2 cores, after cross_family_landmarks.py
+    python studies/adaptive_choice.py --in-family     # §15's ICT cases, after held_out_half.py (~2 min)
+    python studies/adaptive_choice.py --whole-faces   # §12's ICT whole faces, after landmark_term.py (~1 min)
     python studies/adaptive_choice.py --report
 """
 from __future__ import annotations
@@ -40,6 +42,10 @@ from families import LANDMARKED  # noqa: E402
 from study_runs import run_or_report  # noqa: E402
 
 RESULTS = ROOT / "studies" / "results" / "adaptive_choice.json"
+IN_FAMILY = ROOT / "studies" / "results" / "adaptive_choice_in_family.json"
+IN_FAMILY_K = 50   # §15's model: ICT's first 50 modes
+WHOLE_FACES = ROOT / "studies" / "results" / "adaptive_choice_whole_faces.json"
+WHOLE_FACE_WEIGHT = 10.0   # §12's landmark weight
 CANDIDATES = ("default", "laplacian")
 HELD_SHARE = 0.25
 
@@ -77,6 +83,88 @@ def fit_case(people: str, model_family: str, seed: int, half: str, method: str) 
         return row | {"error": f"{type(exc).__name__}: {exc}".splitlines()[0]}
     return row | {"validation": float(np.nanmean(inside_distance(seen.points[held], result.vertices, model.faces))),
                   "seconds": result.seconds}
+
+
+def fit_in_family(name: str, half: str, method: str) -> dict:
+    """The validation fit of ``method`` on §15's case (studies/held_out_half.py): an ICT person
+    outside ICT's first 50 modes, a half face with its landmarks."""
+    import torch
+
+    torch.set_num_threads(1)
+    from cases import ict_model
+    from default_candidates import register_candidate
+    from held_out_half import case_data as in_family_case
+    from statfit.core.threads import flush_denormals_everywhere
+    from statfit.model.statmodel import with_landmarks
+    from statfit.registration.job import landmark_alignment
+
+    flush_denormals_everywhere()
+    data = in_family_case(name, half)
+    model = with_landmarks(ict_model(), data["indices"]).truncated(IN_FAMILY_K)
+    seen = data["seen"]
+    held = validation_split(seen, landmark_alignment(model, data["landmarks"]).apply(model.template))
+    result = register_candidate(method, model, seen[~held], landmarks=data["landmarks"], threads=1)
+    return {"case": name, "half": half, "method": method, "seconds": result.seconds,
+            "validation": 10.0 * float(np.nanmean(inside_distance(seen[held], result.vertices, model.faces)))}
+
+
+def in_family_report(rows: list[dict]) -> str:
+    """§15's cases: the held-out half (mm, studies/results/held_out_half.json) of each candidate and
+    of the choice."""
+    from held_out_half import RESULTS as HALF_FITS
+
+    full = {(r["case"], r["half"], r["method"]): r["held"] for r in json.loads(HALF_FITS.read_text())
+            if "case" in r and r.get("k") == IN_FAMILY_K}
+    checks = {(r["case"], r["half"], r["method"]): r["validation"] for r in rows}
+    cases = sorted({k[:2] for k in checks if all((*k[:2], c) in checks and (*k[:2], c) in full for c in CANDIDATES)})
+    chosen = [full[(*c, min(CANDIDATES, key=lambda m: checks[(*c, m)]))] for c in cases]
+    laplacian_chosen = sum(min(CANDIDATES, key=lambda m: checks[(*c, m)]) == "laplacian" for c in cases)
+    values = {m: float(np.mean([full[(*c, m)] for c in cases])) for m in (*CANDIDATES, "mean")}
+    return "\n".join([
+        "In family (§15: ICT people outside ICT's first 50 modes, half faces with landmarks): held-out half (mm).", "",
+        "| cases | default | laplacian | chosen | chosen ÷ default | chosen ÷ mean | laplacian chosen |",
+        "|---|---|---|---|---|---|---|",
+        f"| {len(cases)} | {values['default']:.3f} | {values['laplacian']:.3f} | {np.mean(chosen):.3f} | "
+        f"{np.mean(chosen) / values['default']:.3f} | {np.mean(chosen) / values['mean']:.2f} | "
+        f"{laplacian_chosen}/{len(cases)} |"])
+
+
+def fit_whole_face(case: str, method: str) -> dict:
+    """The validation fit of ``method`` on §12's case (studies/landmark_term.py): a whole ICT face
+    scan in millimetres with its landmarks, the nose tip's misplaced."""
+    import torch
+
+    torch.set_num_threads(1)
+    from default_candidates import register_candidate
+    from landmark_term import case_data as whole_face_case
+    from statfit.core.threads import flush_denormals_everywhere
+    from statfit.registration.job import landmark_alignment
+
+    flush_denormals_everywhere()
+    data = whole_face_case(case)
+    model, points = data["model"], data["points"]
+    held = validation_split(points, landmark_alignment(model, data["landmarks"]).apply(model.template))
+    result = register_candidate(method, model, points[~held], landmarks=data["landmarks"],
+                                landmark_weight=WHOLE_FACE_WEIGHT, threads=1)
+    return {"case": case, "method": method, "seconds": result.seconds,
+            "validation": float(np.nanmean(inside_distance(points[held], result.vertices, model.faces)))}
+
+
+def whole_face_report(rows: list[dict]) -> str:
+    """§12's cases: the all-vertex error (mm, studies/results/landmark_term_2026-11-26.json) of each
+    candidate fitted to the whole scan, and of the choice."""
+    stored = json.loads((ROOT / "studies" / "results" / "landmark_term_2026-11-26.json").read_text())
+    full = {(r["case"], r["method"]): r["all_mm"] for r in stored if r["weight"] == WHOLE_FACE_WEIGHT}
+    checks = {(r["case"], r["method"]): r["validation"] for r in rows}
+    cases = sorted({c for c, _ in checks if all((c, m) in checks and (c, m) in full for m in CANDIDATES)})
+    picks = {c: min(CANDIDATES, key=lambda m: checks[(c, m)]) for c in cases}
+    values = {m: float(np.mean([full[(c, m)] for c in cases])) for m in CANDIDATES}
+    chosen = float(np.mean([full[(c, picks[c])] for c in cases]))
+    return "\n".join([
+        "Whole faces (§12: ICT people, landmarks with the nose tip 20 mm off): all-vertex error (mm).", "",
+        "| cases | default | laplacian | chosen | chosen ÷ default | laplacian chosen |", "|---|---|---|---|---|---|",
+        f"| {len(cases)} | {values['default']:.3f} | {values['laplacian']:.3f} | {chosen:.3f} | "
+        f"{chosen / values['default']:.3f} | {sum(p == 'laplacian' for p in picks.values())}/{len(cases)} |"])
 
 
 def report(rows: list[dict]) -> str:
@@ -127,8 +215,23 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--people", type=int, default=2, help="people per family")
     parser.add_argument("--families", nargs="*", default=list(LANDMARKED), help=f"of {', '.join(LANDMARKED)}")
+    parser.add_argument("--in-family", action="store_true", help="§15's ICT cases instead of §19's")
+    parser.add_argument("--whole-faces", action="store_true", help="§12's ICT whole faces instead of §19's")
     parser.add_argument("--report", action="store_true", help="only print the tables of the stored rows")
     args = parser.parse_args()
+    if args.whole_faces:
+        from landmark_term import CASES
+
+        run_or_report(fit_whole_face, [(case, method) for case in CASES for method in CANDIDATES], WHOLE_FACES,
+                      whole_face_report, args.report, key=lambda row: (row["case"], row["method"]))
+        return
+    if args.in_family:
+        from held_out_half import TARGETS
+
+        runs = [(name, half, method) for name in TARGETS for half in HALVES for method in CANDIDATES]
+        run_or_report(fit_in_family, runs, IN_FAMILY, in_family_report, args.report,
+                      key=lambda row: (row["case"], row["half"], row["method"]))
+        return
     runs = [(p, m, s, h, method) for p in args.families for m in args.families for s in range(args.people)
             for h in HALVES for method in CANDIDATES]
     run_or_report(fit_case, runs, RESULTS, report, args.report,

@@ -48,15 +48,12 @@ def random_similarity(rng: np.random.Generator) -> tuple[np.ndarray, float, np.n
     return rotation, 10.0, rng.uniform(-500, 500, size=3)  # ICT is in cm: ×10 = mm
 
 
-def fit(case: str, method: str, weight: float) -> dict:
-    import torch
-
-    torch.set_num_threads(1)
-    from cases import ICT_MODEL, ict_model, register_named, scan_case
+def case_data(case: str) -> dict:
+    """The case's model (ICT's first MODES modes, the inner landmarks), its scan moved by a random
+    similarity into millimetres, the noisy landmarks (the nose tip misplaced), the moved truth."""
+    from cases import ICT_MODEL, ict_model, scan_case
     from statfit.model.statmodel import with_landmarks
-    from statfit.core.threads import flush_denormals_everywhere
 
-    flush_denormals_everywhere()
     indices = np.load(ICT_MODEL)["landmarks68"][INNER].astype(np.int64)
     model = with_landmarks(ict_model(), indices).truncated(MODES)
     data = scan_case(case)
@@ -67,11 +64,24 @@ def fit(case: str, method: str, weight: float) -> dict:
     landmarks = truth[indices] + rng.normal(scale=NOISE_MM, size=(len(indices), 3))
     direction = rng.normal(size=3)
     landmarks[NOSE_TIP] += MISPLACED_MM * direction / np.linalg.norm(direction)
+    return {"model": model, "points": move(data.points), "landmarks": landmarks, "truth": truth, "indices": indices}
+
+
+def fit(case: str, method: str, weight: float) -> dict:
+    import torch
+
+    torch.set_num_threads(1)
+    from cases import register_named
+    from statfit.core.threads import flush_denormals_everywhere
+
+    flush_denormals_everywhere()
+    data = case_data(case)
+    model, indices, truth = data["model"], data["indices"], data["truth"]
     from default_candidates import candidates, register_candidate
 
-    options = dict(landmarks=landmarks, landmark_weight=weight, threads=1)
-    result = (register_candidate(method, model, move(data.points), **options) if method in candidates()
-              else register_named(model, move(data.points), method, **options))
+    options = dict(landmarks=data["landmarks"], landmark_weight=weight, threads=1)
+    result = (register_candidate(method, model, data["points"], **options) if method in candidates()
+              else register_named(model, data["points"], method, **options))
     return {"case": case, "method": method, "weight": weight, "seconds": result.seconds,
             "landmark_mm": float(np.linalg.norm(result.vertices[indices] - truth[indices], axis=1).mean()),
             "all_mm": float(np.linalg.norm(result.vertices - truth, axis=1).mean())}
