@@ -41,6 +41,17 @@ def ict_model():
     return load_model(path)
 
 
+def normal_map_scene(model, size: int) -> tuple:
+    """A normal map (size², of one sample of ``model``, seed 3, yaw 20°, pitch 5°) and its camera."""
+    from statfit.renderer.images import render_target
+    from statfit.structures.normal_map import NormalMap
+    from statfit.synth.sample import camera_for_view
+
+    shape = model.sample(np.random.default_rng(3), 1.0)
+    camera = camera_for_view(shape, 20.0, 5.0, size)
+    return NormalMap(*render_target(shape, model.faces, camera)), camera
+
+
 def run_two_at_a_time(job: Callable[..., Any], arguments: dict[str, tuple]) -> dict[str, Any]:
     """``{name: job(*args)}``, two jobs at a time in fresh processes (spawned: no torch state
     shared with the test process). Long single-threaded fits gain little from a second thread, so

@@ -21,9 +21,8 @@ from statfit.core.solvers import DENSE_LIMIT, auto_solver, make_solver
 from statfit.errors import StatfitError
 from statfit.objectives.normals import NormalMapObjective
 from statfit.renderer import steady
-from statfit.renderer.images import render_target
-from statfit.structures.normal_map import NormalMap
-from statfit.synth.sample import camera_for_view
+
+from conftest import normal_map_scene
 
 cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 
@@ -102,17 +101,11 @@ def test_the_dense_solve_solves_the_system(grid, monkeypatch):
     assert DENSE_LIMIT >= 11_248  # ICT's head
 
 
-def _scene(model, size: int = 64):
-    shape = model.sample(np.random.default_rng(3), 1.0)
-    camera = camera_for_view(shape, 20.0, 5.0, size)
-    return NormalMap(*render_target(shape, model.faces, camera)), camera
-
-
 def test_the_loop_counts_the_replays_for_the_renderer(embedded_model, monkeypatch):
     """With the renderer's calls counted by ``replayed`` (as the loop does after each replay), the
     overflow check still reads every CHECK_EVERY counts and forgets a buffer that was too small; a
     call while no buffer overflowed forgets nothing."""
-    normal_map, camera = _scene(embedded_model)
+    normal_map, camera = normal_map_scene(embedded_model, 64)
     from statfit.render.job import camera_space_normals
     target = torch.as_tensor(camera_space_normals(normal_map, camera), dtype=torch.float32)
     faces = torch.as_tensor(embedded_model.faces, dtype=torch.long)
@@ -135,7 +128,7 @@ def test_the_loop_counts_the_replays_for_the_renderer(embedded_model, monkeypatc
 def test_a_captured_fit_is_the_fit_run_op_by_op(embedded_model, monkeypatch):
     """A paper-statistical render on CUDA, captured (one capture, then replays), against the same
     fit with capturing off: the same vertices to float32 rounding over 60 iterations."""
-    normal_map, camera = _scene(embedded_model)
+    normal_map, camera = normal_map_scene(embedded_model, 64)
 
     def fit(graphs_on: str):
         monkeypatch.setenv("STATFIT_CUDA_GRAPHS", graphs_on)
@@ -156,7 +149,7 @@ def test_a_captured_fit_is_the_fit_run_op_by_op(embedded_model, monkeypatch):
 @cuda
 def test_a_hybrid_fit_with_the_dense_solve_is_captured(embedded_model, monkeypatch):
     """The hybrid filter with the dense Laplacian solve is captured and fits as the cholespy one does."""
-    normal_map, camera = _scene(embedded_model)
+    normal_map, camera = normal_map_scene(embedded_model, 64)
     timer = StageTimer()
     dense = reconstruct(embedded_model, normal_map, camera, "hybrid", align="none", iterations=60, device="cuda",
                         timer=timer, solver="dense")
@@ -172,7 +165,7 @@ def test_a_view_that_outgrows_its_buffers_is_captured_again(embedded_model, monk
     again, and the fit ends where the fit run op by op does."""
     monkeypatch.setattr(steady, "MARGIN", 1.0)
     monkeypatch.setattr(steady, "FLOOR", 0)
-    normal_map, camera = _scene(embedded_model)
+    normal_map, camera = normal_map_scene(embedded_model, 64)
     start = embedded_model.template * 0.9 + embedded_model.template.mean(axis=0) * 0.1   # grows towards the map
 
     def fit(graphs_on: str):

@@ -9,15 +9,13 @@ from __future__ import annotations
 import collections
 import traceback
 
-import numpy as np
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from statfit.objectives.normals import NormalMapObjective
 from statfit.render.job import camera_space_normals, reconstruct
-from statfit.renderer.images import render_target
-from statfit.structures.normal_map import NormalMap
-from statfit.synth.sample import camera_for_view
+
+from conftest import normal_map_scene
 
 WAITING = ("_local_scalar_dense", "nonzero", "masked_select", "_unique", "unique_consecutive", "unique_dim",
            "repeat_interleave", "equal", "is_nonzero", "masked_scatter")
@@ -44,12 +42,6 @@ class Counter(TorchDispatchMode):
         return sum(v for k, v in self.ops.items() if any(w in k for w in WAITING))
 
 
-def _scene(model):
-    shape = model.sample(np.random.default_rng(3), 1.0)
-    camera = camera_for_view(shape, 20.0, 5.0, SIZE)
-    return NormalMap(*render_target(shape, model.faces, camera)), camera
-
-
 def _per_iteration(run, short: int, long: int) -> tuple[float, float, float]:
     counters = []
     for iterations in (short, long):
@@ -68,7 +60,7 @@ def test_the_objective_runs_without_host_waits_in_few_ops(embedded_model):
     general rasteriser's path: ~990, 13 host waits) and 1/16 host reads (the renderer's overflow
     check, every 16th call). 694 before the per-pixel normals were set up per triangle: 49 ops
     more (triangle-sized) for 13–17% less time a call at 512² on one CPU thread."""
-    normal_map, camera = _scene(embedded_model)
+    normal_map, camera = normal_map_scene(embedded_model, SIZE)
     target = camera_space_normals(normal_map, camera)
     faces = torch.as_tensor(embedded_model.faces, dtype=torch.long)
     start = torch.as_tensor(embedded_model.template, dtype=torch.float32)
@@ -93,7 +85,7 @@ def test_a_render_iteration_counts(embedded_model):
     150 is NOT reached (the loop's own ~40, ~620 forward and ~70 backward ops of the render) — and
     0.06 waits per iteration in all (the renderer's overflow check every 16th call; 1.3 before the
     normal-map objective deferred the loop's finiteness test to its record steps)."""
-    normal_map, camera = _scene(embedded_model)
+    normal_map, camera = normal_map_scene(embedded_model, SIZE)
 
     def run(iterations: int) -> int:
         return reconstruct(embedded_model, normal_map, camera, "statistical", preset="paper", align="none",
