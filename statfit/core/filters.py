@@ -48,6 +48,20 @@ KEPT_FACTORISATIONS = 2
 _kept = threading.local()
 
 
+def _kept_solver(key: tuple, factorise):
+    """This thread's solver for ``key``, made by ``factorise()`` unless one of the last
+    :data:`KEPT_FACTORISATIONS` has that key."""
+    if not hasattr(_kept, "solvers"):
+        _kept.solvers = collections.OrderedDict()
+    kept = _kept.solvers
+    if key not in kept:
+        kept[key] = factorise()
+        while len(kept) > KEPT_FACTORISATIONS:
+            kept.popitem(last=False)
+    kept.move_to_end(key)
+    return kept[key]
+
+
 class LaplacianFilter:
     """F = (I + λL)⁻¹, factorised at construction, or taken from the last :data:`KEPT_FACTORISATIONS`
     of this thread when one was made of the same mesh (the faces; the vertices too for a cotangent
@@ -60,14 +74,8 @@ class LaplacianFilter:
         if kind != "uniform":
             digest.update(np.ascontiguousarray(vertices, dtype=np.float64).tobytes())
         key = (digest.hexdigest(), len(vertices), float(lam), kind, solver, dtype, str(torch.device(device)))
-        kept: collections.OrderedDict = getattr(_kept, "solvers", None) or collections.OrderedDict()
-        _kept.solvers = kept
-        if key not in kept:
-            kept[key] = make_solver(smoothing_matrix(vertices, faces, lam, kind), solver, dtype, device)
-            while len(kept) > KEPT_FACTORISATIONS:
-                kept.popitem(last=False)
-        kept.move_to_end(key)
-        self._solver = kept[key]
+        self._solver = _kept_solver(key, lambda: make_solver(smoothing_matrix(vertices, faces, lam, kind), solver,
+                                                             dtype, device))
 
     @classmethod
     def from_laplacian(cls, laplacian: sp.spmatrix, lam: float, solver: str = "auto",

@@ -158,9 +158,10 @@ def _loop(param: Parametrization, optimizer: torch.optim.Optimizer, objective: O
         if parameters and capturable(objective, optimizers, parameters[0].device, param) else None
     for step in range(iterations):
         it = first_iteration + step
+        replayed = captured is not None and captured.ready()
         if captured is None:
             x, losses, loss = iterate()
-        elif not captured.ready():
+        elif not replayed:
             x, losses, loss = _detached(*captured.eager())
         else:
             with timer("graph"):
@@ -173,7 +174,7 @@ def _loop(param: Parametrization, optimizer: torch.optim.Optimizer, objective: O
             if on_record:
                 on_record(it, terms)
             if on_snapshot:
-                on_snapshot(it, x.detach().clone())
+                on_snapshot(it, x.clone() if replayed else x.detach())   # a replay's x is overwritten
     if captured is not None:
         timer.notes["graph"] = captured.failure or f"captured {captured.captures}×"
     with torch.no_grad():

@@ -28,7 +28,7 @@ from typing import Callable
 
 import torch
 
-from statfit.core.optim import UniformAdam, make_capturable
+from statfit.core.optim import CAPTURABLE_OPTIMIZERS, make_capturable
 
 WARMUP = 3          # eager iterations on a side stream before a capture (CUDA's lazy set-up; buffer sizes)
 
@@ -42,7 +42,7 @@ def capturable(objective, optimizers: list[torch.optim.Optimizer], device: torch
             and (parametrization is None or bool(getattr(parametrization, "capturable", False)))
             and bool(getattr(objective, "capturable", False)) and bool(getattr(objective, "deferred_checks", False))
             and getattr(objective, "optimizer", None) is None
-            and all(isinstance(each, (torch.optim.Adam, UniformAdam)) for each in optimizers))
+            and all(isinstance(each, CAPTURABLE_OPTIMIZERS) for each in optimizers))
 
 
 class CapturedIteration:

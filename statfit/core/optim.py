@@ -45,6 +45,10 @@ class UniformAdam(torch.optim.Optimizer):
                 p.sub_(m / denom, alpha=group["lr"] / (1 - b1**t))
 
 
+# The optimisers whose steps :func:`make_capturable` can switch to a device-side step count.
+CAPTURABLE_OPTIMIZERS = (UniformAdam, torch.optim.Adam)
+
+
 def _step_tensor(state: dict, p: torch.Tensor) -> torch.Tensor:
     """The state's step count as a float64 tensor () on ``p``'s device (converted once)."""
     step = state["step"]
@@ -56,7 +60,7 @@ def _step_tensor(state: dict, p: torch.Tensor) -> torch.Tensor:
 def make_capturable(optimizer: torch.optim.Optimizer) -> bool:
     """Switch ``optimizer`` (UniformAdam or torch's Adam) to steps that a CUDA graph can capture,
     keeping its state; False (and unchanged) for any other optimiser."""
-    if not isinstance(optimizer, (UniformAdam, torch.optim.Adam)):
+    if not isinstance(optimizer, CAPTURABLE_OPTIMIZERS):
         return False
     if isinstance(optimizer, torch.optim.Adam):
         if any(group.get(flag) for group in optimizer.param_groups for flag in ("fused", "differentiable")):
