@@ -66,7 +66,20 @@ def synchronize(device: str) -> None:
         torch.cuda.synchronize()
 
 
-def filter_step_ms(device: str, vertices: int, k: int = 100, repeats: int = 20) -> float:
+def median_ms(call, device: str, repeats: int = 20) -> float:
+    """``call()`` after one warm-up call: the median of ``repeats`` timed calls, in ms."""
+    call()
+    times = []
+    for _ in range(repeats):
+        synchronize(device)
+        start = time.perf_counter()
+        call()
+        synchronize(device)
+        times.append(1e3 * (time.perf_counter() - start))
+    return float(np.median(times))
+
+
+def filter_step_ms(device: str, vertices: int, k: int = 100) -> float:
     """One statistical filter step (two mat-vecs) on (3·vertices,) float32, median ms."""
     from statfit.core.filters import StatisticalFilter
 
@@ -74,32 +87,16 @@ def filter_step_ms(device: str, vertices: int, k: int = 100, repeats: int = 20) 
     basis_t = torch.linalg.qr(torch.randn(3 * vertices, k, device=device, generator=generator))[0].T.contiguous()
     step = StatisticalFilter(basis_t, beta=1000.0)
     gradient = torch.randn(vertices, 3, device=device, generator=generator)
-    step(gradient)
-    times = []
-    for _ in range(repeats):
-        synchronize(device)
-        start = time.perf_counter()
-        step(gradient)
-        synchronize(device)
-        times.append(1e3 * (time.perf_counter() - start))
-    return float(np.median(times))
+    return median_ms(lambda: step(gradient), device)
 
 
-def solve_ms(device: str, model, solver: str, repeats: int = 20) -> float:
+def solve_ms(device: str, model, solver: str) -> float:
     """One prefactored (I + λL)⁻¹ solve of (N, 3) float32 on ``model``'s mesh (λ = 19), median ms."""
     from statfit.core.filters import LaplacianFilter
 
     solve = LaplacianFilter(model.template, model.faces, 19.0, solver=solver, device=device)
     rhs = torch.randn(len(model.template), 3, device=device)
-    solve(rhs)
-    times = []
-    for _ in range(repeats):
-        synchronize(device)
-        start = time.perf_counter()
-        solve(rhs)
-        synchronize(device)
-        times.append(1e3 * (time.perf_counter() - start))
-    return float(np.median(times))
+    return median_ms(lambda: solve(rhs), device)
 
 
 def timed(fit, device: str):
