@@ -59,53 +59,63 @@ def validation_split(points: np.ndarray, template_placed: np.ndarray) -> np.ndar
     return along >= np.quantile(along, 1.0 - HELD_SHARE)
 
 
-def fit_case(people: str, model_family: str, seed: int, half: str, method: str) -> dict:
+def single_threaded() -> None:
+    """One torch thread, subnormals flushed: as every study fit runs (set before the case is built)."""
     import torch
 
-    torch.set_num_threads(1)
-    from default_candidates import register_candidate
-    from families import landmarked_model
     from statfit.core.threads import flush_denormals_everywhere
+
+    torch.set_num_threads(1)
+    flush_denormals_everywhere()
+
+
+def validation_fit(model, points: np.ndarray, landmarks: np.ndarray, method: str, normals: np.ndarray | None = None,
+                   **options) -> dict:
+    """``method`` fitted to ``points`` (M, 3; ``normals`` (M, 3) or None) less their validation
+    quarter (:func:`validation_split`, from the mean placed by ``landmarks``): the quarter's mean
+    distance to the fit (the points' units) and the fit's seconds."""
+    from default_candidates import register_candidate
     from statfit.registration.job import landmark_alignment
     from statfit.structures.scan import Scan
 
-    flush_denormals_everywhere()
+    held = validation_split(points, landmark_alignment(model, landmarks).apply(model.template))
+    kept = points[~held] if normals is None else Scan(points[~held], normals[~held])
+    result = register_candidate(method, model, kept, landmarks=landmarks, threads=1, **options)
+    return {"validation": float(np.nanmean(inside_distance(points[held], result.vertices, model.faces))),
+            "seconds": result.seconds}
+
+
+def chosen_method(checks: dict, case: tuple) -> str:
+    """The candidate whose validation distance ``checks[(*case, method)]`` is the lowest."""
+    return min(CANDIDATES, key=lambda method: checks[(*case, method)])
+
+
+def fit_case(people: str, model_family: str, seed: int, half: str, method: str) -> dict:
+    single_threaded()
+    from families import landmarked_model
+
     data = case_data(people, seed, half)
-    model = landmarked_model(model_family)
     row = {"people": people, "model": model_family, "seed": seed, "half": half, "method": method}
-    seen = data["seen"]
-    placed = landmark_alignment(model, data["landmarks"]).apply(model.template)
-    held = validation_split(seen.points, placed)
     try:
-        result = register_candidate(method, model, Scan(seen.points[~held], seen.normals[~held]),
-                                    landmarks=data["landmarks"], threads=1)
+        return row | validation_fit(landmarked_model(model_family), data["seen"].points, data["landmarks"], method,
+                                    data["seen"].normals)
     except Exception as exc:   # a refusal is a result too
         return row | {"error": f"{type(exc).__name__}: {exc}".splitlines()[0]}
-    return row | {"validation": float(np.nanmean(inside_distance(seen.points[held], result.vertices, model.faces))),
-                  "seconds": result.seconds}
 
 
 def fit_in_family(name: str, half: str, method: str) -> dict:
     """The validation fit of ``method`` on §15's case (studies/held_out_half.py): an ICT person
-    outside ICT's first 50 modes, a half face with its landmarks."""
-    import torch
-
-    torch.set_num_threads(1)
+    outside ICT's first 50 modes, a half face with its landmarks (validation in mm; ICT is in cm)."""
+    single_threaded()
     from cases import ict_model
-    from default_candidates import register_candidate
     from held_out_half import case_data as in_family_case
-    from statfit.core.threads import flush_denormals_everywhere
     from statfit.model.statmodel import with_landmarks
-    from statfit.registration.job import landmark_alignment
 
-    flush_denormals_everywhere()
     data = in_family_case(name, half)
     model = with_landmarks(ict_model(), data["indices"]).truncated(IN_FAMILY_K)
-    seen = data["seen"]
-    held = validation_split(seen, landmark_alignment(model, data["landmarks"]).apply(model.template))
-    result = register_candidate(method, model, seen[~held], landmarks=data["landmarks"], threads=1)
-    return {"case": name, "half": half, "method": method, "seconds": result.seconds,
-            "validation": 10.0 * float(np.nanmean(inside_distance(seen[held], result.vertices, model.faces)))}
+    fitted = validation_fit(model, data["seen"], data["landmarks"], method)
+    return {"case": name, "half": half, "method": method, "seconds": fitted["seconds"],
+            "validation": 10.0 * fitted["validation"]}
 
 
 def in_family_report(rows: list[dict]) -> str:
@@ -117,8 +127,8 @@ def in_family_report(rows: list[dict]) -> str:
             if "case" in r and r.get("k") == IN_FAMILY_K}
     checks = {(r["case"], r["half"], r["method"]): r["validation"] for r in rows}
     cases = sorted({k[:2] for k in checks if all((*k[:2], c) in checks and (*k[:2], c) in full for c in CANDIDATES)})
-    chosen = [full[(*c, min(CANDIDATES, key=lambda m: checks[(*c, m)]))] for c in cases]
-    laplacian_chosen = sum(min(CANDIDATES, key=lambda m: checks[(*c, m)]) == "laplacian" for c in cases)
+    chosen = [full[(*c, chosen_method(checks, c))] for c in cases]
+    laplacian_chosen = sum(chosen_method(checks, c) == "laplacian" for c in cases)
     values = {m: float(np.mean([full[(*c, m)] for c in cases])) for m in (*CANDIDATES, "mean")}
     return "\n".join([
         "In family (§15: ICT people outside ICT's first 50 modes, half faces with landmarks): held-out half (mm).", "",
@@ -132,22 +142,12 @@ def in_family_report(rows: list[dict]) -> str:
 def fit_whole_face(case: str, method: str) -> dict:
     """The validation fit of ``method`` on §12's case (studies/landmark_term.py): a whole ICT face
     scan in millimetres with its landmarks, the nose tip's misplaced."""
-    import torch
-
-    torch.set_num_threads(1)
-    from default_candidates import register_candidate
+    single_threaded()
     from landmark_term import case_data as whole_face_case
-    from statfit.core.threads import flush_denormals_everywhere
-    from statfit.registration.job import landmark_alignment
 
-    flush_denormals_everywhere()
     data = whole_face_case(case)
-    model, points = data["model"], data["points"]
-    held = validation_split(points, landmark_alignment(model, data["landmarks"]).apply(model.template))
-    result = register_candidate(method, model, points[~held], landmarks=data["landmarks"],
-                                landmark_weight=WHOLE_FACE_WEIGHT, threads=1)
-    return {"case": case, "method": method, "seconds": result.seconds,
-            "validation": float(np.nanmean(inside_distance(points[held], result.vertices, model.faces)))}
+    return {"case": case, "method": method} | validation_fit(data["model"], data["points"], data["landmarks"], method,
+                                                              landmark_weight=WHOLE_FACE_WEIGHT)
 
 
 def whole_face_report(rows: list[dict]) -> str:
@@ -157,7 +157,7 @@ def whole_face_report(rows: list[dict]) -> str:
     full = {(r["case"], r["method"]): r["all_mm"] for r in stored if r["weight"] == WHOLE_FACE_WEIGHT}
     checks = {(r["case"], r["method"]): r["validation"] for r in rows}
     cases = sorted({c for c, _ in checks if all((c, m) in checks and (c, m) in full for m in CANDIDATES)})
-    picks = {c: min(CANDIDATES, key=lambda m: checks[(c, m)]) for c in cases}
+    picks = {c: chosen_method(checks, (c,)) for c in cases}
     values = {m: float(np.mean([full[(c, m)] for c in cases])) for m in CANDIDATES}
     chosen = float(np.mean([full[(c, picks[c])] for c in cases]))
     return "\n".join([
@@ -170,7 +170,8 @@ def whole_face_report(rows: list[dict]) -> str:
 def report(rows: list[dict]) -> str:
     full = {(r["people"], r["model"], r["seed"], r["half"], r["method"]): r
             for r in json.loads(FULL_FITS.read_text()) if "held" in r}
-    checks = {(r["people"], r["model"], r["seed"], r["half"], r["method"]): r for r in rows if "validation" in r}
+    checks = {(r["people"], r["model"], r["seed"], r["half"], r["method"]): r["validation"]
+              for r in rows if "validation" in r}
     pairs = sorted({(r["people"], r["model"]) for r in rows})
     lines = ["Held-out half (mm, §19's fits of the whole half) of each candidate, of the candidate the "
              "validation quarter chose, and of the better candidate per case (oracle); how often the "
@@ -188,7 +189,7 @@ def report(rows: list[dict]) -> str:
         picked_laplacian = agree = 0
         for case in cases:
             held = {k: full[(people, model, *case, k)]["held"] for k in CANDIDATES}
-            chosen = min(CANDIDATES, key=lambda k: checks[(people, model, *case, k)]["validation"])
+            chosen = chosen_method(checks, (people, model, *case))
             oracle = min(CANDIDATES, key=held.get)
             picked_laplacian += chosen == "laplacian"
             agree += chosen == oracle
