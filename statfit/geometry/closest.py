@@ -26,21 +26,22 @@ class SurfacePoints:
     distance: torch.Tensor
 
 
-def vertex_triangle_table(faces: np.ndarray, num_vertices: int) -> np.ndarray:
-    """(N, D) triangles incident to each vertex, rows padded by repeating their first entry."""
+def vertex_triangle_lists(faces: np.ndarray, num_vertices: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The triangles incident to each vertex, in one flat list: triangles (T,), each vertex's first
+    entry (N,) and its count (N,), in face order per vertex. A vertex of no triangle lists
+    triangle 0 (so every vertex has at least one candidate)."""
     faces = np.asarray(faces, dtype=np.int64)
     vertex = faces.reshape(-1)
     triangle = np.repeat(np.arange(faces.shape[0]), 3)
     order = np.argsort(vertex, kind="stable")
     vertex, triangle = vertex[order], triangle[order]
     counts = np.bincount(vertex, minlength=num_vertices)
-    width = max(int(counts.max()), 1)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    slot = np.arange(vertex.size) - starts[vertex]
-    table = np.full((num_vertices, width), -1, dtype=np.int64)
-    table[vertex, slot] = triangle
-    first = np.where(table[:, :1] >= 0, table[:, :1], 0)
-    return np.where(table >= 0, table, first)
+    lonely = np.flatnonzero(counts == 0)
+    vertex = np.concatenate([vertex, lonely])
+    triangle = np.concatenate([triangle, np.zeros(len(lonely), dtype=np.int64)])
+    order = np.argsort(vertex, kind="stable")
+    counts = np.maximum(counts, 1)
+    return triangle[order], np.cumsum(counts) - counts, counts
 
 
 def closest_on_triangles(points: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor
@@ -109,11 +110,10 @@ class ClosestPointQuery:
         self.k = k
         self.faces = torch.as_tensor(np.asarray(faces, dtype=np.int64), device=device)
         self.open_edges = open_edges(self.faces)
-        self._ring = torch.as_tensor(vertex_triangle_table(faces, num_vertices), device=device)
+        ring, first, counts = vertex_triangle_lists(faces, num_vertices)
+        self._ring, self._ring_first, self._ring_count = (torch.as_tensor(a, device=device)
+                                                          for a in (ring, first, counts))
         self._faces_flat = self.faces.reshape(-1)
-        # edge pairs whose dot products a triangle's test needs: ab·ab, ab·ac, ac·ac
-        self._left = torch.tensor([0, 0, 1], device=device)
-        self._right = torch.tensor([0, 1, 1], device=device)
 
     def __call__(self, vertices: torch.Tensor, points: torch.Tensor, host_points: np.ndarray | None = None
                  ) -> SurfacePoints:
@@ -130,22 +130,35 @@ class ClosestPointQuery:
                 host_points = (points.detach() if points.requires_grad else points).cpu().double().numpy()
             _, nearest = tree.query(host_points, k=self.k)
             count = len(points)
-            nearest = torch.as_tensor(nearest.reshape(count, -1), device=points.device)
-            candidates = self._ring[nearest].view(count, -1)               # (M, C)
+            nearest = torch.as_tensor(nearest.reshape(-1), device=points.device)        # (M k,)
+            # Candidates: the triangles around each point's nearest vertices, one flat list (L,)
+            # grouped by point (no padding, so a vertex of few triangles costs only those).
+            sizes = self._ring_count.index_select(0, nearest)
+            total = int(sizes.sum())         # a host read: the tree query above ran on the host anyway
+            group = torch.repeat_interleave(torch.arange(len(nearest), device=points.device), sizes,
+                                            output_size=total)
+            lane = torch.arange(total, device=points.device)
+            within = lane - (sizes.cumsum(0) - sizes).index_select(0, group)
+            candidates = self._ring.index_select(0, self._ring_first.index_select(0, nearest).index_select(0, group)
+                                                 + within)                                   # (L,)
+            owner = group.div(self.k, rounding_mode="floor")                                 # (L,) its point
             corners = vertices.index_select(0, self._faces_flat).view(-1, 3, 3)      # (F, corner, xyz)
-            edges = corners[:, 1:] - corners[:, :1]                                   # (F, 2, 3): ab, ac
-            products = (edges[:, self._left] * edges[:, self._right]).sum(-1)        # (F, 3): ab·ab, ab·ac, ac·ac
+            ab, ac = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+            products = torch.stack([(ab * ab).sum(-1), (ab * ac).sum(-1), (ac * ac).sum(-1)])   # (3, F)
             # one plane per quantity (12, F), so that every product below runs over contiguous memory
-            per_triangle = torch.cat([corners[:, 0], edges.view(-1, 6), products], dim=1).T.contiguous()
-            gathered = per_triangle.index_select(1, candidates.view(-1)).view(12, *candidates.shape)   # (12, M, C)
-            offset = points.T[:, :, None] - gathered[0:3]                            # (3, M, C)
+            per_triangle = torch.cat([corners[:, 0].T, ab.T, ac.T, products])
+            gathered = per_triangle.index_select(1, candidates)                               # (12, L)
+            offset = points.T.index_select(1, owner) - gathered[0:3]                         # (3, L)
             # ap·ab, ap·ac, ap·ap at once: (edge b, edge c, offset) · offset, summed over xyz in order
-            dots = (torch.cat([gathered[3:9].view(2, 3, *candidates.shape), offset[None]]) * offset).sum(1)
+            dots = (torch.cat([gathered[3:9].view(2, 3, -1), offset[None]]) * offset).sum(1)
             v, w, sq = _closest_in_triangle_vw(*dots, *gathered[9:12])
-            best = sq.argmin(dim=1, keepdim=True)                                    # (M, 1)
-            triangle = candidates.gather(1, best)[:, 0]
+            # Per point, the first of its nearest candidates (as argmin over a row of them).
+            nearest_sq = sq.new_full((count,), torch.inf).scatter_reduce_(0, owner, sq, "amin")
+            first = torch.where(sq == nearest_sq.index_select(0, owner), lane, total)
+            best = lane.new_full((count,), total).scatter_reduce_(0, owner, first, "amin")    # (M,)
+            triangle = candidates.index_select(0, best)
             # the winner's corner and edges (9 planes) and its (v, w), in one gather: (11, M)
-            picked = torch.cat([gathered[:9], v[None], w[None]]).gather(2, best[None].expand(11, -1, -1))[..., 0]
+            picked = torch.cat([gathered[:9], v[None], w[None]]).index_select(1, best)
             corner, edge_b, edge_c, (v, w) = picked[0:3], picked[3:6], picked[6:9], picked[9:11]
             bary = torch.stack([1 - v - w, v, w], dim=-1)
             surface = (corner + v * edge_b + w * edge_c).T
