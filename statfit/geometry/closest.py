@@ -110,9 +110,8 @@ class ClosestPointQuery:
         self.k = k
         self.faces = torch.as_tensor(np.asarray(faces, dtype=np.int64), device=device)
         self.open_edges = open_edges(self.faces)
-        ring, first, counts = vertex_triangle_lists(faces, num_vertices)
-        self._ring, self._ring_first, self._ring_count = (torch.as_tensor(a, device=device)
-                                                          for a in (ring, first, counts))
+        # on the host: the candidates are listed where the KD-tree query runs
+        self._ring, self._ring_first, self._ring_count = vertex_triangle_lists(faces, num_vertices)
         self._faces_flat = self.faces.reshape(-1)
 
     def __call__(self, vertices: torch.Tensor, points: torch.Tensor, host_points: np.ndarray | None = None
@@ -130,18 +129,17 @@ class ClosestPointQuery:
                 host_points = (points.detach() if points.requires_grad else points).cpu().double().numpy()
             _, nearest = tree.query(host_points, k=self.k)
             count = len(points)
-            nearest = torch.as_tensor(nearest.reshape(-1), device=points.device)        # (M k,)
             # Candidates: the triangles around each point's nearest vertices, one flat list (L,)
-            # grouped by point (no padding, so a vertex of few triangles costs only those).
-            sizes = self._ring_count.index_select(0, nearest)
-            total = int(sizes.sum())         # a host read: the tree query above ran on the host anyway
-            group = torch.repeat_interleave(torch.arange(len(nearest), device=points.device), sizes,
-                                            output_size=total)
+            # grouped by point (no padding, so a vertex of few triangles costs only those); listed on
+            # the host, where the tree query ran, so the device never waits for a count.
+            nearest = nearest.reshape(-1)
+            sizes = self._ring_count[nearest]
+            group = np.repeat(np.arange(len(nearest)), sizes)
+            within = np.arange(len(group)) - (np.cumsum(sizes) - sizes)[group]
+            candidates = torch.as_tensor(self._ring[self._ring_first[nearest][group] + within], device=points.device)
+            owner = torch.as_tensor(group // self.k, device=points.device)                    # (L,) its point
+            total = len(group)
             lane = torch.arange(total, device=points.device)
-            within = lane - (sizes.cumsum(0) - sizes).index_select(0, group)
-            candidates = self._ring.index_select(0, self._ring_first.index_select(0, nearest).index_select(0, group)
-                                                 + within)                                   # (L,)
-            owner = group.div(self.k, rounding_mode="floor")                                 # (L,) its point
             corners = vertices.index_select(0, self._faces_flat).view(-1, 3, 3)      # (F, corner, xyz)
             ab, ac = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
             products = torch.stack([(ab * ab).sum(-1), (ab * ac).sum(-1), (ac * ac).sum(-1)])   # (3, F)

@@ -32,7 +32,6 @@ rounding (float64: within 1e-10, gradients included: tests/test_steady_renderer.
 from __future__ import annotations
 
 import math
-import sys
 
 import torch
 
@@ -100,7 +99,6 @@ class SteadyRenderer:
         self._axis = torch.tensor([0, 0, 1, 1, 0], **long)
         self._direction = torch.tensor([1.0, -1.0, 1.0, -1.0, 1.0], dtype=dtype, device=device)
         self._axis_bits = torch.tensor([[0], [0], [1], [1]], dtype=torch.uint8, device=device)  # code bit
-        self._low = 0 if sys.byteorder == "little" else 1
         self._sizes: dict[str, int] = {}
         self._aranges: dict = {}
         self._need: torch.Tensor | None = None
@@ -165,8 +163,8 @@ class SteadyRenderer:
             facts = torch.nn.functional.pad(flags[0].int().mul_(2).add_(flags[1].int()), (0, 1))
             walk = (torch.nn.functional.pad(corner[:2].reshape(6, count), (0, 1)),      # corner x, y rows
                     facts.add_(self._neighbor_t, alpha=4))                               # (3, F+1) int32
-            words = keys.view(torch.int32).view(-1, 2)
-            triangle = words[:, self._low].long().remainder_(count + 1)                 # background → F
+            # The key's low word: the triangle, or all ones (the background) → F.
+            triangle = keys.bitwise_and(_LOW32).clamp_max_(count)
             covered = triangle < count
             # Covered pixels, ascending, into a buffer of M slots (dump slots: the dump pixel).
             pixel, running = self._select(covered, "pixels")                             # lanes: pixels
