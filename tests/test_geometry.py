@@ -33,6 +33,19 @@ def test_closest_points_match_brute_force(embedded_model, rng):
     assert np.mean(np.abs(fast.distance.numpy() - expected) < 1e-9) > 0.95  # the fit's cheaper candidate set
 
 
+def test_closest_points_with_a_vertex_of_no_triangle_and_a_tie():
+    """A vertex of no triangle lists triangle 0, so a point nearest it still has candidates; a point
+    equally near two triangles gets the one listed first around its nearest vertex (argmin's rule)."""
+    vertices = torch.tensor([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [5, 5, 0]], dtype=torch.float64)
+    faces = np.array([[0, 1, 2], [1, 3, 2]])                     # vertex 4: in no triangle
+    points = torch.tensor([[5.0, 5.0, 0.1], [0.3, 0.7, 1.0]], dtype=torch.float64)
+    hit = ClosestPointQuery(faces, len(vertices), k=2)(vertices, points)
+    # the first point's candidates: triangle 0 (vertex 4's stand-in) and triangle 1 (vertex 3's)
+    assert hit.triangle.tolist() == [1, 0]
+    torch.testing.assert_close(hit.distance, torch.tensor([32.01 ** 0.5, 1.0], dtype=torch.float64))
+    torch.testing.assert_close(hit.barycentric[0], torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
+
+
 def test_closest_point_regions_of_one_triangle():
     a, b, c = (torch.tensor(v, dtype=torch.float64) for v in ([0, 0, 0], [1, 0, 0], [0, 1, 0]))
     points = torch.tensor([[0.2, 0.2, 1.0], [-1, -1, 0], [2, -1, 0], [0.5, -1, 0], [1, 1, 0]], dtype=torch.float64)
