@@ -27,6 +27,7 @@ class PoseFit:
 # Weight of the Gaussian prior on the shape coefficients fitted with the pose: weak, so the pose
 # does not absorb differences of shape (docs/method.md, the inverse-rendering alignment).
 SHAPE_PRIOR = 1e-3
+SETTLE_WINDOW = 25   # iterations between the early stop's reads of the best value
 
 def _skew(omega: torch.Tensor) -> torch.Tensor:
     zero = omega.new_zeros(())
@@ -51,7 +52,7 @@ def rotation_of(omega: torch.Tensor) -> torch.Tensor:
 def fit_pose(vertices: torch.Tensor, loss: Loss, *, with_scale: bool = False, iterations: int = 200,
              lr: float = 0.01, start: Similarity | None = None, fixed_axis: torch.Tensor | None = None,
              shape_basis: torch.Tensor | None = None, shape_prior: float = SHAPE_PRIOR, shape_lr: float | None = None,
-             move: bool = True) -> PoseFit:
+             move: bool = True, settle: float | None = None) -> PoseFit:
     """The pose y = s·R·x + t of ``vertices`` (N, 3) that minimises ``sum(loss(y).values())``.
 
     Adam on a rotation vector (exponential map), a translation and, ``with_scale``, log s; the
@@ -61,8 +62,10 @@ def fit_pose(vertices: torch.Tensor, loss: Loss, *, with_scale: bool = False, it
     (default: the identity). ``shape_basis`` (K, N, 3): the shape varies jointly as
     ``vertices + Σ c_k basis_k`` with a penalty ``shape_prior·‖c‖²``, so that the pose need not
     explain differences of shape, each coefficient at Adam's step ``shape_lr`` (default ``lr``);
-    ``move=False`` keeps the pose at ``start`` and fits the shape only. Returns the best pose
-    seen, with its shape and objective value.
+    ``move=False`` keeps the pose at ``start`` and fits the shape only. ``settle``: stop early once
+    the best value has fallen by less than this share of itself over the last ``SETTLE_WINDOW``
+    iterations (one host read per window). Returns the best pose seen, with its shape and
+    objective value.
     """
     dtype, device = vertices.dtype, vertices.device
     centre = vertices.detach().mean(dim=0)
@@ -113,13 +116,19 @@ def fit_pose(vertices: torch.Tensor, loss: Loss, *, with_scale: bool = False, it
         return y, {"value": value}, value
 
     captured = CapturedIteration(iterate, [optimizer], loss) if capturable(loss, [optimizer], device) else None
-    for _ in range(iterations):
+    before = float("inf")
+    for done in range(1, iterations + 1):
         if captured is None:
             iterate()
         elif captured.ready():
             captured.replay()
         else:
             captured.eager()
+        if settle is not None and done % SETTLE_WINDOW == 0:
+            now = float(best[0])
+            if before - now <= settle * abs(now):
+                break
+            before = now
     best_value, scale, rotation, translation, best_shape = best
     rotation = rotation.double().cpu().numpy()
     centre64 = centre.double().cpu().numpy()

@@ -46,6 +46,9 @@ PARTIAL_FACING_SHARE = 0.3
 NORMAL_CONVENTIONS = ("opencv", "opengl")
 POSE_ITERATIONS = 200
 POSE_LR = 0.01
+# The alignment stops once its best value fell by less than this share over 25 iterations (it settles
+# by 100-175 of its 200 on the rendering study's cases: docs/studies.md §22).
+POSE_SETTLE = 1e-3
 # The rigid alignment's step on the model's coefficients (standard deviations), 5x the pose's: at
 # the pose's step they move at most ~2 in its 200 steps, short of what bodies far from the mean need
 # (a 1.21 m body: -1.8 on the size mode alone). On the body study every method ends closer from this
@@ -269,8 +272,8 @@ def _align(start: torch.Tensor, objective: NormalMapObjective, space: FitSpace, 
     identity), or where the search had to start from a rough ``guess`` (None: the silhouettes
     overlapped, no move was needed)."""
     basis = (space.basis_t * space.std[:, None]).view(len(space.std), -1, 3)
-    common = dict(iterations=POSE_ITERATIONS, lr=POSE_LR, start=guess, fixed_axis=view_axis, shape_basis=basis,
-                  shape_lr=POSE_LR if with_scale else SHAPE_LR)   # with a scale, the size mode trades against it
+    common = dict(iterations=POSE_ITERATIONS, lr=POSE_LR, settle=POSE_SETTLE, start=guess, fixed_axis=view_axis,
+                  shape_basis=basis, shape_lr=POSE_LR if with_scale else SHAPE_LR)   # with a scale, the size mode trades against it
     moved = fit_pose(start, objective, with_scale=with_scale, **common)
     if guess is not None:
         return moved.pose, moved.shape  # the silhouettes disagreed: the rough guess needs refining
