@@ -98,6 +98,30 @@ def test_crashing_and_hanging_fits_fail_alone_and_the_batch_goes_on(tmp_path):
     assert not (tmp_path / "out" / "crash.ply").exists()
 
 
+def test_a_new_pool_has_started_its_workers_before_it_takes_fits():
+    """A fit's timeout counts the fit: the pool's workers (a fresh interpreter, torch and statfit
+    imported) have all started before the first fit is handed over, at start and after a restart."""
+    import multiprocessing
+    import time
+
+    from statfit.batch.engines import _pid_after
+
+    began = time.perf_counter()
+    engine = LocalPool(2)
+    starting = time.perf_counter() - began
+    try:
+        assert len(multiprocessing.active_children()) == 2
+        began = time.perf_counter()
+        assert engine.result(engine.submit(_pid_after, 0.0)) in {p.pid for p in multiprocessing.active_children()}
+        assert time.perf_counter() - began < starting       # no start-up left to wait for
+        engine.replace([], [])
+        began = time.perf_counter()
+        engine.result(engine.submit(_pid_after, 0.0))
+        assert time.perf_counter() - began < starting
+    finally:
+        engine.close()
+
+
 def test_local_pool_fits_like_one_by_one_register_and_reruns_skip_what_is_done(scans, tmp_path):
     out = tmp_path / "fits"
     code, err = run_cli(["batch", "register", str(scans / "**" / "*.ply"), "--out-dir", str(out), "--workers", "2",

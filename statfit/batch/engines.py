@@ -14,6 +14,7 @@ import multiprocessing.connection
 import os
 import signal
 import threading
+import time
 from typing import Any, Callable, Iterable, Protocol
 
 from statfit.batch.fits import prepare_worker
@@ -42,10 +43,19 @@ def _exit_with_parent() -> None:
     os._exit(1)
 
 
+def _pid_after(seconds: float) -> int:
+    """This worker's process id, after ``seconds`` (so that one worker cannot answer every call)."""
+    time.sleep(seconds)
+    return os.getpid()
+
+
 def _start_worker(max_threads: int | None) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the batch's to handle, not each worker's
     threading.Thread(target=_exit_with_parent, daemon=True).start()
     prepare_worker(max_threads)
+
+
+WORKER_START_SECONDS = 300   # the longest a new pool waits for all its workers to answer
 
 
 class LocalPool:
@@ -62,8 +72,19 @@ class LocalPool:
         self._pool = self._start()
 
     def _start(self) -> cf.ProcessPoolExecutor:
-        return cf.ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
+        """A new pool whose every worker has started (interpreter, imports, set-up) before it returns:
+        a fit's timeout then counts the fit, not a worker's start, which takes seconds on a loaded
+        machine."""
+        pool = cf.ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
                                       initializer=_start_worker, initargs=(self._max_threads,))
+        answered: set[int] = set()
+        deadline = time.monotonic() + WORKER_START_SECONDS
+        try:
+            while len(answered) < self.workers and time.monotonic() < deadline:
+                answered |= {f.result() for f in [pool.submit(_pid_after, 0.05) for _ in range(self.workers)]}
+        except cf.process.BrokenProcessPool:   # a worker died starting: the fits will say so
+            pass
+        return pool
 
     def submit(self, work: Callable, *args: Any) -> cf.Future:
         try:
