@@ -75,16 +75,24 @@ class LocalPool:
         """A new pool whose every worker has started (interpreter, imports, set-up) before it returns:
         a fit's timeout then counts the fit, not a worker's start, which takes seconds on a loaded
         machine."""
-        pool = cf.ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
-                                      initializer=_start_worker, initargs=(self._max_threads,))
+        pool = self._new_pool()
         answered: set[int] = set()
         deadline = time.monotonic() + WORKER_START_SECONDS
         try:
             while len(answered) < self.workers and time.monotonic() < deadline:
-                answered |= {f.result() for f in [pool.submit(_pid_after, 0.05) for _ in range(self.workers)]}
-        except cf.process.BrokenProcessPool:   # a worker died starting: the fits will say so
+                calls = [pool.submit(_pid_after, 0.05) for _ in range(self.workers)]
+                answered |= {f.result(timeout=max(deadline - time.monotonic(), 0.0)) for f in calls}
+        except cf.TimeoutError:         # a worker hangs starting: its fits will time out
             pass
+        except cf.process.BrokenProcessPool:   # a worker died starting: a new pool, whose fits will say so
+            self._pool = pool
+            self._kill()
+            pool = self._new_pool()
         return pool
+
+    def _new_pool(self) -> cf.ProcessPoolExecutor:
+        return cf.ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
+                                      initializer=_start_worker, initargs=(self._max_threads,))
 
     def submit(self, work: Callable, *args: Any) -> cf.Future:
         try:
