@@ -1,5 +1,6 @@
 """A goodness-of-fit gate: fall back to ``laplacian`` where the model cannot explain the scan
-(issue 37, part 3; docs/studies.md §21). Measured from stored rows; nothing here fits anything.
+(issue 37, part 3; docs/studies.md §21). Measured from stored rows, and (``--in-family-fits``) from
+new fits of §12's and §9's in-family cases, whose stored rows have no seen residual.
 
 After the default fit, the gate looks at how far the scan points the fit was given lie from the
 fitted surface (``seen``: their mean distance to the fit). If the default cannot explain the scan
@@ -27,7 +28,20 @@ Row sets (every ``held``/``seen`` in mm):
 The threshold is also chosen on some families and checked on others: on §19's ICT and mask people
 (48 cases), then checked on §19's MakeHuman people, on §17 and on §15; and the other way round.
 
-    python studies/fit_gate.py --report     # seconds: loads the four models for their radii
+In family, fitted here (``--in-family-fits``; rows in studies/results/fit_gate_in_family.json; the
+gate's error on a case is then the all-vertex error of the method kept):
+
+- §12, studies/landmark_term.py: ICT's first 30 modes, a whole face scan in mm with its 51 landmarks
+  (the nose tip 20 mm off), landmark weight 10 (as §20's ``--whole-faces``); all-vertex error in mm;
+- §9, studies/register_gauss_newton.py: the full ICT model (100 modes), the registration study's nine
+  partial scans, no landmarks; all-vertex error in cm (the study's unit).
+
+Both: ``default`` and ``laplacian`` (tuned presets), one thread, one process, fits in turn; ``seen`` is
+the mean distance of the fitted scan points to the fit (:func:`cross_family.inside_distance`, NaN
+beyond the fit's open boundary left out), in the scan's units.
+
+    python studies/fit_gate.py --report             # seconds: loads the four models for their radii
+    python studies/fit_gate.py --in-family-fits     # 26 fits, ~2–3 min on one core; then the report
 """
 from __future__ import annotations
 
@@ -47,6 +61,11 @@ SINGLE_METHODS = ("pca", "statistical", "hybrid", "laplacian", "default")
 IN_FAMILY_K = 50                       # §15's model: ICT's first 50 modes
 IN_FAMILY_FAMILY = "ict"
 CHOOSE_ON = ("ict", "ict-mask")        # §19's people the threshold is chosen on
+IN_FAMILY_FITS = RESULTS / "fit_gate_in_family.json"
+GATE_METHODS = ("default", "laplacian")
+WHOLE_FACE_WEIGHT = 10.0               # §12's (and §20's --whole-faces) landmark weight
+MM_PER_UNIT = {"mm": 1.0, "cm": 10.0}  # §12's scans are in mm, §9's (ICT's units) in cm
+GATE_CHECKS = (("mm", 0.25), ("mm", 0.29), ("mm", 0.76), ("radius", 2.7), ("radius", 3.1), ("radius", 10.0))
 VARIANTS = {  # name → (unit, grid shown in the tables, fine grid the threshold is chosen on)
     "mm": ("mm", (0.25, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0, 1.1, 1.5, 2.0, 3.0),
            np.round(np.arange(0.10, 5.001, 0.01), 2)),
@@ -344,6 +363,140 @@ def firing_cases(cases: list[dict], variant: str, threshold: float, radii: dict,
     return lines
 
 
+def single_threaded() -> None:
+    """One torch thread, subnormals flushed, as every study fit runs (set before the case is built)."""
+    import torch
+
+    from statfit.core.threads import flush_denormals_everywhere
+
+    torch.set_num_threads(1)
+    flush_denormals_everywhere()
+
+
+def seen_residual(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> tuple[float, float]:
+    """The mean distance of the fitted scan points to the fit (§17's and §19's ``seen``), and the share
+    of points left out as lying beyond the fit's open boundary."""
+    from cross_family import inside_distance
+
+    distance = inside_distance(points, vertices, faces)
+    return float(np.nanmean(distance)), float(np.isnan(distance).mean())
+
+
+def fit_whole_face(case: str, method: str) -> dict:
+    """§12's case (studies/landmark_term.py) fitted as §12 and §20 fit it: the whole scan with its
+    landmarks at weight 10; the all-vertex error and the seen residual in mm."""
+    single_threaded()
+    from cases import register_named
+    from landmark_term import case_data
+
+    data = case_data(case)
+    model = data["model"]
+    result = register_named(model, data["points"], method, landmarks=data["landmarks"],
+                            landmark_weight=WHOLE_FACE_WEIGHT, threads=1)
+    seen, beyond = seen_residual(data["points"], result.vertices, model.faces)
+    return {"set": "§12", "case": case, "method": method, "unit": "mm", "seconds": result.seconds,
+            "all": float(np.linalg.norm(result.vertices - data["truth"], axis=1).mean()),
+            "landmark_mm": float(np.linalg.norm(result.vertices[data["indices"]] - data["truth"][data["indices"]],
+                                                axis=1).mean()),
+            "seen": seen, "beyond": beyond}
+
+
+def fit_in_span(case: str, method: str) -> dict:
+    """§9's case (benchmarks/cases.py ``scan_case``) fitted with the full ICT model, no landmarks;
+    the all-vertex error and the seen residual in cm (ICT's units)."""
+    single_threaded()
+    from cases import ict_model, scan_case
+    from statfit.registration.job import register
+
+    data, model = scan_case(case), ict_model()
+    result = register(model, data.points, method, threads=1)
+    seen, beyond = seen_residual(data.points, result.vertices, model.faces)
+    return {"set": "§9", "case": case, "method": method, "unit": "cm", "seconds": result.seconds,
+            "all": float(np.linalg.norm(result.vertices - data.target, axis=1).mean()),
+            "seen": seen, "beyond": beyond}
+
+
+def in_family_runs() -> list[tuple]:
+    from cases import STUDY_SCAN_CASES
+    from landmark_term import CASES as WHOLE_FACES
+
+    return ([("§12", case, method) for case in WHOLE_FACES for method in GATE_METHODS]
+            + [("§9", case, method) for case in STUDY_SCAN_CASES for method in GATE_METHODS])
+
+
+def run_in_family_fits() -> None:
+    """Every run of :func:`in_family_runs` not yet stored, in turn in this process (one thread), each row
+    written to :data:`IN_FAMILY_FITS` as it ends."""
+    rows = json.loads(IN_FAMILY_FITS.read_text()) if IN_FAMILY_FITS.is_file() else []
+    done = {(r["set"], r["case"], r["method"]) for r in rows}
+    todo = [run for run in in_family_runs() if run not in done]
+    for count, (name, case, method) in enumerate(todo, 1):
+        rows.append((fit_whole_face if name == "§12" else fit_in_span)(case, method))
+        IN_FAMILY_FITS.write_text(json.dumps(rows, indent=1))
+        row = rows[-1]
+        print(f"{count}/{len(todo)} {name} {case} {method}: all {row['all']:.4f} {row['unit']}, "
+              f"seen {row['seen']:.4f}, {row['seconds']:.1f} s", flush=True)
+
+
+def in_family_fit_cases(rows: list[dict]) -> dict:
+    """The stored in-family fits as gate cases (:func:`cross_family_cases`' form), by set: ``held`` is
+    the all-vertex error (the set's unit), ``seen`` in mm (the gate's τ is in mm)."""
+    by = {(r["set"], r["case"], r["method"]): r for r in rows}
+    sets: dict = {}
+    for name, case in dict.fromkeys(run[:2] for run in in_family_runs()):
+        if not all((name, case, m) in by for m in GATE_METHODS):
+            continue
+        fits = {m: by[(name, case, m)] for m in GATE_METHODS}
+        sets.setdefault(name, []).append({
+            "pair": ("ict", "ict"), "case": (case,), "family": IN_FAMILY_FAMILY, "unit": fits["default"]["unit"],
+            "held": {m: fits[m]["all"] for m in GATE_METHODS},
+            "seen": {m: fits[m]["seen"] * MM_PER_UNIT[fits[m]["unit"]] for m in GATE_METHODS},
+            "seconds": {m: fits[m]["seconds"] for m in GATE_METHODS}})
+    return sets
+
+
+def in_family_fits_report(radii: dict) -> list[str]:
+    """§12's and §9's new fits: per case, and the gate at §21's thresholds."""
+    if not IN_FAMILY_FITS.is_file():
+        return ["(no in-family fits stored: run `python studies/fit_gate.py --in-family-fits`)"]
+    sets = in_family_fit_cases(json.loads(IN_FAMILY_FITS.read_text()))
+    radii = {IN_FAMILY_FAMILY: model_radius_mm(IN_FAMILY_FAMILY)} | radii
+    radius = radii[IN_FAMILY_FAMILY]
+    lines = [f"In family, new fits (§12: whole faces with landmarks, ICT's first 30 modes, error mm; §9: nine "
+             f"partial scans, the full ICT model, error cm): seen residual in mm and in ‰ of ICT's RMS radius "
+             f"({radius:.1f} mm); all-vertex error of each method.", "",
+             "| set | case | default seen mm (‰) | laplacian seen mm | default all | laplacian all | better |",
+             "|---|---|---|---|---|---|---|"]
+    for name, cases in sets.items():
+        for c in cases:
+            better = "laplacian" if c["held"]["laplacian"] < c["held"]["default"] else "default"
+            lines.append(f"| {name} | {c['case'][0]} | {c['seen']['default']:.3f} ({score(c, 'radius', radii):.2f}) | "
+                         f"{c['seen']['laplacian']:.3f} | {c['held']['default']:.4f} | {c['held']['laplacian']:.4f} | "
+                         f"{better} |")
+    lines += ["", "The gate at §21's thresholds: mean all-vertex error (fired / cases), ÷ the default's.", "",
+              "| set (unit) | default | laplacian | better of the two per case | "
+              + " | ".join(f"{t:g} {'mm' if v == 'mm' else '‰'}" for v, t in GATE_CHECKS) + " |",
+              "|---|---|---|---|" + "---|" * len(GATE_CHECKS)]
+    for name, cases in sets.items():
+        base = fixed(cases, "default")
+        cells = []
+        for variant, threshold in GATE_CHECKS:
+            value, fires = mean_gate(cases, variant, threshold, radii)
+            cells.append(f"{value:.4f} ({fires}/{len(cases)}) {value / base:.3f}")
+        lines.append(f"| {name} ({cases[0]['unit']}) | {base:.4f} | {fixed(cases, 'laplacian'):.4f} "
+                     f"({fixed(cases, 'laplacian') / base:.3f}) | {oracle(cases):.4f} | " + " | ".join(cells) + " |")
+    lines += ["", "The default's seen residual per set (a threshold above the largest fires on none), how often "
+              "`laplacian` is better, and AUC for it (as in §21's separation table).", "",
+              "| set | default seen mm: min – max | ‰: min – max | laplacian better | AUC mm |", "|---|---|---|---|---|"]
+    for name, cases in sets.items():
+        mm = [c["seen"]["default"] for c in cases]
+        rel = [score(c, "radius", radii) for c in cases]
+        lines.append(f"| {name} | {min(mm):.3f} – {max(mm):.3f} | {min(rel):.2f} – {max(rel):.2f} | "
+                     f"{sum(c['held']['laplacian'] < c['held']['default'] for c in cases)}/{len(cases)} | "
+                     f"{auc(cases, 'mm', radii):.2f} |")
+    return lines
+
+
 def report() -> str:
     sets = {"§19": cross_family_cases(RESULTS / "cross_family_landmarks.json"),
             "§17": cross_family_cases(RESULTS / "cross_family.json"),
@@ -367,14 +520,20 @@ def report() -> str:
             lines += worst_cases(sets[name], variant, threshold, radii, name) + [""]
     lines += pair_table(sets["§19"], "mm", 0.6, radii, "§19, per pair, at the first probe's τ") + [""]
     lines += pair_table(sets["§19"], "mm", 1.1, radii, "§19, per pair, at the lowest τ that fires on no §15 case") + [""]
+    lines += in_family_fits_report(radii) + [""]
     return "\n".join(lines)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--report", action="store_true",
-                        help="print the tables (the study only reads stored rows, so this is all it does)")
-    parser.parse_args()
+                        help="print the tables from the stored rows (the default without --in-family-fits)")
+    parser.add_argument("--in-family-fits", action="store_true",
+                        help="first fit §12's and §9's in-family cases not yet stored in "
+                             "studies/results/fit_gate_in_family.json (one thread, in turn)")
+    args = parser.parse_args()
+    if args.in_family_fits and not args.report:
+        run_in_family_fits()
     print(report())
 
 
