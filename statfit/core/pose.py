@@ -29,6 +29,7 @@ class PoseFit:
 SHAPE_PRIOR = 1e-3
 SETTLE_WINDOW = 25   # iterations between the early stop's reads of the best value
 
+
 def _skew(omega: torch.Tensor) -> torch.Tensor:
     zero = omega.new_zeros(())
     x, y, z = omega.unbind()
