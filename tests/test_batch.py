@@ -98,26 +98,27 @@ def test_crashing_and_hanging_fits_fail_alone_and_the_batch_goes_on(tmp_path):
     assert not (tmp_path / "out" / "crash.ply").exists()
 
 
-def test_a_new_pool_has_started_its_workers_before_it_takes_fits():
-    """A fit's timeout counts the fit: the pool's workers (a fresh interpreter, torch and statfit
-    imported) have all started before the first fit is handed over, at start and after a restart."""
+def test_a_pool_starts_its_workers_at_its_first_fit_and_before_handing_it_over():
+    """A fit's timeout counts the fit: the first fit handed to a pool (new, or restarted) waits
+    until all its workers (a fresh interpreter each, torch and statfit imported) have started, and
+    then runs at once. A pool given no fit starts no worker."""
     import multiprocessing
     import time
 
     from statfit.batch.engines import _pid_after
 
-    began = time.perf_counter()
     engine = LocalPool(2)
-    starting = time.perf_counter() - began
     try:
-        assert len(multiprocessing.active_children()) == 2
-        began = time.perf_counter()
-        assert engine.result(engine.submit(_pid_after, 0.0)) in {p.pid for p in multiprocessing.active_children()}
-        assert time.perf_counter() - began < starting       # no start-up left to wait for
-        engine.replace([], [])
-        began = time.perf_counter()
-        engine.result(engine.submit(_pid_after, 0.0))
-        assert time.perf_counter() - began < starting
+        assert multiprocessing.active_children() == []
+        for _ in range(2):                                  # new, then restarted
+            began = time.perf_counter()
+            future = engine.submit(_pid_after, 0.0)
+            starting = time.perf_counter() - began
+            assert len(multiprocessing.active_children()) == 2
+            began = time.perf_counter()
+            assert engine.result(future) in {p.pid for p in multiprocessing.active_children()}
+            assert time.perf_counter() - began < starting     # no start-up left in the fit's own time
+            engine.replace([], [])
     finally:
         engine.close()
 

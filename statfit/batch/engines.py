@@ -61,7 +61,9 @@ WORKER_START_SECONDS = 300   # the longest a new pool waits for all its workers 
 class LocalPool:
     """``workers`` processes on this machine (spawned: a fresh interpreter each, no forked
     threads), each set up once; replaced as a whole when one hangs or dies (the standard pool
-    cannot replace one)."""
+    cannot replace one). A pool's workers start at its first fit, which waits until all of them
+    have (interpreter, imports, set-up): a fit's timeout then counts the fit, not a worker's start,
+    which takes seconds on a loaded machine."""
 
     def __init__(self, workers: int, max_threads: int | None = None):
         if workers < 1:
@@ -69,36 +71,36 @@ class LocalPool:
         self.workers = workers
         self.capacity = 2 * workers
         self._max_threads = max_threads
-        self._pool = self._start()
-
-    def _start(self) -> cf.ProcessPoolExecutor:
-        """A new pool whose every worker has started (interpreter, imports, set-up) before it returns:
-        a fit's timeout then counts the fit, not a worker's start, which takes seconds on a loaded
-        machine."""
-        pool = self._new_pool()
-        answered: set[int] = set()
-        deadline = time.monotonic() + WORKER_START_SECONDS
-        try:
-            while len(answered) < self.workers and time.monotonic() < deadline:
-                calls = [pool.submit(_pid_after, 0.05) for _ in range(self.workers)]
-                answered |= {f.result(timeout=max(deadline - time.monotonic(), 0.0)) for f in calls}
-        except cf.TimeoutError:         # a worker hangs starting: its fits will time out
-            pass
-        except cf.process.BrokenProcessPool:   # a worker died starting: a new pool, whose fits will say so
-            self._pool = pool
-            self._kill()
-            pool = self._new_pool()
-        return pool
+        self._pool = self._new_pool()
+        self._started = False
 
     def _new_pool(self) -> cf.ProcessPoolExecutor:
         return cf.ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
                                       initializer=_start_worker, initargs=(self._max_threads,))
 
+    def _start_workers(self) -> None:
+        """Wait (at most WORKER_START_SECONDS) until every worker of the pool has answered a call."""
+        answered: set[int] = set()
+        deadline = time.monotonic() + WORKER_START_SECONDS
+        try:
+            while len(answered) < self.workers and time.monotonic() < deadline:
+                calls = [self._pool.submit(_pid_after, 0.05) for _ in range(self.workers)]
+                answered |= {f.result(timeout=max(deadline - time.monotonic(), 0.0)) for f in calls}
+        except cf.TimeoutError:         # a worker hangs starting: its fits will time out
+            pass
+        except cf.process.BrokenProcessPool:   # a worker died starting: a new pool, whose fits will say so
+            self._kill()
+            self._pool = self._new_pool()
+        self._started = True
+
     def submit(self, work: Callable, *args: Any) -> cf.Future:
+        if not self._started:
+            self._start_workers()
         try:
             return self._pool.submit(work, *args)
         except cf.process.BrokenProcessPool:  # a worker died since the last submit
             self._restart()
+            self._start_workers()
             return self._pool.submit(work, *args)
 
     def wait(self, futures: Iterable[cf.Future], timeout: float) -> set[cf.Future]:
@@ -116,7 +118,8 @@ class LocalPool:
 
     def _restart(self) -> None:
         self._kill()
-        self._pool = self._start()
+        self._pool = self._new_pool()
+        self._started = False
 
     def _kill(self) -> None:
         self._pool.shutdown(wait=False, cancel_futures=True)
