@@ -31,17 +31,12 @@ def vertex_triangle_lists(faces: np.ndarray, num_vertices: int) -> tuple[np.ndar
     entry (N,) and its count (N,), in face order per vertex. A vertex of no triangle lists
     triangle 0 (so every vertex has at least one candidate)."""
     faces = np.asarray(faces, dtype=np.int64)
-    vertex = faces.reshape(-1)
-    triangle = np.repeat(np.arange(faces.shape[0]), 3)
-    order = np.argsort(vertex, kind="stable")
-    vertex, triangle = vertex[order], triangle[order]
-    counts = np.bincount(vertex, minlength=num_vertices)
+    counts = np.bincount(faces.reshape(-1), minlength=num_vertices)
     lonely = np.flatnonzero(counts == 0)
-    vertex = np.concatenate([vertex, lonely])
-    triangle = np.concatenate([triangle, np.zeros(len(lonely), dtype=np.int64)])
-    order = np.argsort(vertex, kind="stable")
+    vertex = np.concatenate([faces.reshape(-1), lonely])
+    triangle = np.concatenate([np.repeat(np.arange(faces.shape[0]), 3), np.zeros(len(lonely), dtype=np.int64)])
     counts = np.maximum(counts, 1)
-    return triangle[order], np.cumsum(counts) - counts, counts
+    return triangle[np.argsort(vertex, kind="stable")], np.cumsum(counts) - counts, counts
 
 
 def closest_on_triangles(points: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor
@@ -114,6 +109,16 @@ class ClosestPointQuery:
         self._ring, self._ring_first, self._ring_count = vertex_triangle_lists(faces, num_vertices)
         self._faces_flat = self.faces.reshape(-1)
 
+    def _candidates(self, nearest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The triangles around each point's nearest vertices ``nearest`` (M, k), one flat list (L,)
+        grouped by point (no padding: a vertex of few triangles costs only those), and each one's
+        point (L,). On the host, where the tree query ran, so the device never waits for a count."""
+        nearest = nearest.reshape(-1)
+        sizes = self._ring_count[nearest]
+        group = np.repeat(np.arange(len(nearest)), sizes)
+        within = np.arange(len(group)) - (np.cumsum(sizes) - sizes)[group]
+        return self._ring[self._ring_first[nearest][group] + within], group // self.k
+
     def __call__(self, vertices: torch.Tensor, points: torch.Tensor, host_points: np.ndarray | None = None
                  ) -> SurfacePoints:
         """Closest points on the surface with ``vertices`` (N, 3) to ``points`` (M, 3);
@@ -129,16 +134,8 @@ class ClosestPointQuery:
                 host_points = (points.detach() if points.requires_grad else points).cpu().double().numpy()
             _, nearest = tree.query(host_points, k=self.k)
             count = len(points)
-            # Candidates: the triangles around each point's nearest vertices, one flat list (L,)
-            # grouped by point (no padding, so a vertex of few triangles costs only those); listed on
-            # the host, where the tree query ran, so the device never waits for a count.
-            nearest = nearest.reshape(-1)
-            sizes = self._ring_count[nearest]
-            group = np.repeat(np.arange(len(nearest)), sizes)
-            within = np.arange(len(group)) - (np.cumsum(sizes) - sizes)[group]
-            candidates = torch.as_tensor(self._ring[self._ring_first[nearest][group] + within], device=points.device)
-            owner = torch.as_tensor(group // self.k, device=points.device)                    # (L,) its point
-            total = len(group)
+            candidates, owner = (torch.as_tensor(a, device=points.device) for a in self._candidates(nearest))
+            total = len(candidates)
             lane = torch.arange(total, device=points.device)
             corners = vertices.index_select(0, self._faces_flat).view(-1, 3, 3)      # (F, corner, xyz)
             ab, ac = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
