@@ -107,16 +107,19 @@ def test_a_pool_starts_its_workers_at_its_first_fit_and_before_handing_it_over()
 
     from statfit.batch.engines import _pid_after
 
+    # an earlier test's pool may still be winding down a process for a moment: count only this pool's
+    before = set(multiprocessing.active_children())
     engine = LocalPool(2)
     try:
-        assert multiprocessing.active_children() == []
+        assert set(multiprocessing.active_children()) <= before
         for _ in range(2):                                  # new, then restarted
             began = time.perf_counter()
             future = engine.submit(_pid_after, 0.0)
             starting = time.perf_counter() - began
-            assert len(multiprocessing.active_children()) == 2
+            workers = set(multiprocessing.active_children()) - before
+            assert len(workers) >= 2
             began = time.perf_counter()
-            assert engine.result(future) in {p.pid for p in multiprocessing.active_children()}
+            assert engine.result(future) in {p.pid for p in workers}
             assert time.perf_counter() - began < starting     # no start-up left in the fit's own time
             engine.replace([], [])
     finally:
