@@ -27,6 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from adaptive_choice import single_threaded  # noqa: E402
 from study_runs import run_or_report  # noqa: E402
 
 RESULTS = ROOT / "studies" / "results" / "alignment_settle.json"
@@ -38,13 +39,9 @@ UNITS = {"ict": "% of the radius ×100", "cross": "% of the radius", "body": "mm
 
 
 def fit(case_set: str, case: str, settled: bool) -> dict:
-    import torch
-
-    torch.set_num_threads(1)
+    single_threaded()
     import statfit.render.job as job
-    from statfit.core.threads import flush_denormals_everywhere
 
-    flush_denormals_everywhere()
     # a pool's worker runs many cases: the full run's setting is undone after the fit
     with contextlib.nullcontext() if settled else mock.patch.object(job, "POSE_SETTLE", None):
         return {"set": case_set, "case": case, "settled": settled} | _fit(case_set, case, job)
@@ -71,13 +68,13 @@ def _fit(case_set: str, case: str, job) -> dict:
         from cross_family import inside_distance
         from cross_family_render import render_case
         from families import family_model
+        from statfit.structures.frame import Frame
 
         people, model_family, seed = case.split("/")
         shape, normal_map, camera, points, _ = render_case(people, model_family, int(seed), 256)
         model = family_model(model_family)
         vertices = job.reconstruct(model, normal_map, camera, "default", threads=1, timer=timer).vertices
-        radius = float(np.sqrt(((shape - shape.mean(axis=0)) ** 2).sum(axis=1).mean()))
-        error = float(np.nanmean(100.0 * inside_distance(points, vertices, model.faces) / radius))
+        error = float(np.nanmean(100.0 * inside_distance(points, vertices, model.faces) / Frame.of(shape).scale))
     else:
         import study_body
 

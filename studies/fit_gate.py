@@ -56,14 +56,14 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from adaptive_choice import IN_FAMILY_K, WHOLE_FACE_WEIGHT, single_threaded  # noqa: E402
+
 RESULTS = ROOT / "studies" / "results"
 SINGLE_METHODS = ("pca", "statistical", "hybrid", "laplacian", "default")
-IN_FAMILY_K = 50                       # §15's model: ICT's first 50 modes
 IN_FAMILY_FAMILY = "ict"
 CHOOSE_ON = ("ict", "ict-mask")        # §19's people the threshold is chosen on
 IN_FAMILY_FITS = RESULTS / "fit_gate_in_family.json"
 GATE_METHODS = ("default", "laplacian")
-WHOLE_FACE_WEIGHT = 10.0               # §12's (and §20's --whole-faces) landmark weight
 MM_PER_UNIT = {"mm": 1.0, "cm": 10.0}  # §12's scans are in mm, §9's (ICT's units) in cm
 GATE_CHECKS = (("mm", 0.25), ("mm", 0.29), ("mm", 0.76), ("radius", 2.7), ("radius", 3.1), ("radius", 10.0))
 VARIANTS = {  # name → (unit, grid shown in the tables, fine grid the threshold is chosen on)
@@ -83,10 +83,10 @@ def model_radius_mm(family: str) -> float:
     torch.set_num_threads(1)
     from families import METRES_PER_UNIT, family_model, landmarked_model, LANDMARKED
 
+    from statfit.structures.frame import Frame
+
     model = landmarked_model(family) if family in LANDMARKED else family_model(family)
-    template = np.asarray(model.template, dtype=np.float64)
-    radius = float(np.sqrt(((template - template.mean(axis=0)) ** 2).sum(axis=1).mean()))
-    return radius * METRES_PER_UNIT[family] * 1000.0
+    return Frame.of(np.asarray(model.template, dtype=np.float64)).scale * METRES_PER_UNIT[family] * 1000.0
 
 
 def cross_family_cases(path: Path) -> list[dict]:
@@ -361,16 +361,6 @@ def firing_cases(cases: list[dict], variant: str, threshold: float, radii: dict,
                          f"{c['seen']['laplacian']:.2f} | {score(c, variant, radii):.2f} | {c['held']['default']:.2f} | "
                          f"{c['held']['laplacian']:.2f} | {c['held']['laplacian'] - c['held']['default']:+.2f} |")
     return lines
-
-
-def single_threaded() -> None:
-    """One torch thread, subnormals flushed, as every study fit runs (set before the case is built)."""
-    import torch
-
-    from statfit.core.threads import flush_denormals_everywhere
-
-    torch.set_num_threads(1)
-    flush_denormals_everywhere()
 
 
 def seen_residual(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> tuple[float, float]:

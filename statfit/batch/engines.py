@@ -89,8 +89,7 @@ class LocalPool:
         except cf.TimeoutError:         # a worker hangs starting: its fits will time out
             pass
         except cf.process.BrokenProcessPool:   # a worker died starting: a new pool, whose fits will say so
-            self._kill()
-            self._pool = self._new_pool()
+            self._restart()
         self._started = True
 
     def submit(self, work: Callable, *args: Any) -> cf.Future:

@@ -272,8 +272,9 @@ def _align(start: torch.Tensor, objective: NormalMapObjective, space: FitSpace, 
     identity), or where the search had to start from a rough ``guess`` (None: the silhouettes
     overlapped, no move was needed)."""
     basis = (space.basis_t * space.std[:, None]).view(len(space.std), -1, 3)
+    # with a scale, the size mode trades against it: the coefficients keep the pose's step
     common = dict(iterations=POSE_ITERATIONS, lr=POSE_LR, settle=POSE_SETTLE, start=guess, fixed_axis=view_axis,
-                  shape_basis=basis, shape_lr=POSE_LR if with_scale else SHAPE_LR)   # with a scale, the size mode trades against it
+                  shape_basis=basis, shape_lr=POSE_LR if with_scale else SHAPE_LR)
     moved = fit_pose(start, objective, with_scale=with_scale, **common)
     if guess is not None:
         return moved.pose, moved.shape  # the silhouettes disagreed: the rough guess needs refining
