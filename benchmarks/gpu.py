@@ -3,7 +3,8 @@
     python benchmarks/gpu.py [--device cuda] [--quick] [--out FILE.json]
 
 Prints a markdown table: the filter step at 2^20 vertices (k = 100); one prefactored Laplacian solve
-on ICT's mesh with cholespy and with the dense inverse; ``register`` (ICT jaw-open, 4,300 points) and
+on ICT's mesh with cholespy and with the dense inverse; one closest-point query of the scan term
+(ICT, 4,300 points); ``register`` (ICT jaw-open, 4,300 points) and
 ``render`` (ICT jaw-open, 512²) at the default and at the paper's settings (render's also op by op,
 ``STATFIT_CUDA_GRAPHS=0``; both defaults also with the cholespy solve, which no CUDA graph captures,
 where the default, ``auto``, solves by the dense inverse on a GPU; each row says whether its fit ran
@@ -99,6 +100,17 @@ def solve_ms(device: str, model, solver: str) -> float:
     return median_ms(lambda: solve(rhs), device)
 
 
+def closest_ms(device: str, model, points: np.ndarray) -> float:
+    """One closest-point query (the scan term's, k = 2) of ``points`` on ``model``'s mean, median ms."""
+    from statfit.geometry.closest import ClosestPointQuery
+
+    query = ClosestPointQuery(model.faces, model.num_vertices, k=2, device=device)
+    vertices = torch.as_tensor(model.template, dtype=torch.float32, device=device)
+    targets = torch.as_tensor(points, dtype=torch.float32, device=device)
+    host = targets.double().cpu().numpy()
+    return median_ms(lambda: query(vertices, targets, host), device)
+
+
 def timed(fit, device: str):
     """One run of ``fit()``: (result, seconds)."""
     synchronize(device)
@@ -166,6 +178,7 @@ def main() -> None:
     save(rows, args.out)
 
     scan = scan_case("jaw-open")
+    rows["closest points, ICT, 4,300 scan points, k = 2 (ms)"] = closest_ms(device, ict, scan.points)
     normals = normal_case("jaw-open", 128 if args.quick else 512)
     def register_with(method: str, preset: str, iterations: int | None, **overrides):
         extra = {} if iterations is None else {"iterations": iterations}
