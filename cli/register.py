@@ -10,13 +10,13 @@ from statfit.io.files import existing_file
 from statfit.io.mesh import check_writable, load_scan, mesh_bytes, mesh_format
 from statfit.io.landmarks import read_landmarks
 from statfit.core.device import resolve_device
-from statfit.core.methods import LANDMARK_WEIGHT, landmark_weight as method_landmark_weight, resolve
+from statfit.core.methods import LANDMARK_WEIGHT, fallback as method_fallback, landmark_weight as method_landmark_weight, resolve
 from statfit.registration.job import register as fit_scan
 from statfit.model.importers.cache import open_model
 from statfit.geometry.support import scan_support
 from statfit.model.params import project, vertex_fields
 from statfit.model.params_file import params_bytes, params_suffix
-from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, IterationsOption, JsonOption, KOption,
+from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, FallbackOption, IterationsOption, JsonOption, KOption,
                                 LamOption, LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption,
                                 ModelOption, ParamsOption, PowerOption, PresetOption, QuietOption, SeedOption,
                                 ThreadsOption, clutter_choice, setting_overrides, within)
@@ -31,6 +31,7 @@ def register(
     k: int = KOption,
     method: str = MethodOption,
     preset: str = PresetOption,
+    fallback: bool = FallbackOption,
     out: str = typer.Option(None, "--out", "-o", help="Fitted mesh (.ply or .obj; '-' for PLY on stdout). "
                             "Default: <scan>_fit.ply here.", show_default=False),
     log: Path = LogOption,
@@ -87,8 +88,8 @@ def register(
     overrides = setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain)
     clutter_rules = clutter_choice(clutter)
     stages = resolve(method, preset, **overrides)
-    if landmark_weight is None:
-        landmark_weight = method_landmark_weight(method)
+    refit = method_fallback(method, preset, **overrides) if fallback else None
+    weight = method_landmark_weight(method) if landmark_weight is None else landmark_weight
     torch_device = resolve_device(device, "register")
     if len(scans) > 1:
         raise StatfitError(f"{len(scans)} scans given; register fits one — for many, `statfit batch register SCANS "
@@ -110,18 +111,18 @@ def register(
     header = dict(method=method, preset=preset, stages=[s.describe() for s in stages], model=model.source,
                   modes=model.num_modes, input=scan, points=len(points.points), align=align, device=str(torch_device),
                   threads=threads, seed=seed, refresh=refresh, trim=trim, region=region,
-                  landmarks=str(landmarks) if landmarks else None, landmark_weight=landmark_weight,
+                  landmarks=str(landmarks) if landmarks else None, landmark_weight=weight,
                   clutter=clutter)
     label = Path(scan).name if scan != "-" else "stdin"
     with fit_run("register", log, label, sum(s.iterations for s in stages), quiet, **header) as run:
         result = fit_scan(model, points, stages=stages, align=align, device=str(torch_device),
                           refresh_every=refresh, trim=trim, seed=seed, on_record=run.on_record,
                           region=region, landmarks=scan_landmarks, landmark_weight=landmark_weight, threads=threads,
-                          clutter=clutter_rules)
+                          clutter=clutter_rules, fallback=refit)
     summary = {"input": scan, "output": target, "method": method, "iterations": result.iterations,
                "final_loss": result.loss, "seconds": result.seconds, "threads": result.threads,
                "stage_seconds": result.stage_seconds, "model_to_scan": result.transform.as_matrix().tolist(),
-               "pose": result.pose}
+               "pose": result.pose, "fallback": result.fallback}
     projection = project(model, result.vertices, result.transform, (result.pose or {}).get("units_factor"))
     fields = vertex_fields(projection, *scan_support(result.vertices, points.points))
     outputs = {target: mesh_bytes(result.vertices, model.faces, mesh_format(target), fields)}

@@ -7,14 +7,14 @@ import typer
 
 from statfit.batch.fits import FitJob
 from statfit.core.device import resolve_device
-from statfit.core.methods import resolve
+from statfit.core.methods import fallback as method_fallback, resolve
 from statfit.errors import StatfitError
 from statfit.model.statmodel import region_vertices
 from statfit.registration.job import ALIGNMENTS
 from statfit_cli.batch.options import (BatchThreadsOption, ClusterOption, ForceOption, InputsArgument, JsonOption,
                                        OutDirOption, SchedulerOption, TimeoutOption, WorkersOption)
 from statfit_cli.batch.running import check_engine, model_identity, prepared_inputs, run_fits
-from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, IterationsOption, KOption, LamOption,
+from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, FallbackOption, IterationsOption, KOption, LamOption,
                                 LaplacianOption, LrOption, MethodOption, ModeGainOption, ModelOption, PowerOption,
                                 PresetOption, QuietOption, SeedOption, clutter_choice, setting_overrides, within)
 
@@ -26,6 +26,7 @@ def batch_register(
     k: int = KOption,
     method: str = MethodOption,
     preset: str = PresetOption,
+    fallback: bool = FallbackOption,
     workers: int = WorkersOption,
     scheduler: str = SchedulerOption,
     cluster: str = ClusterOption,
@@ -67,7 +68,9 @@ def batch_register(
         statfit batch status fits/
     """
     check_engine(scheduler, cluster)
-    stages = resolve(method, preset, **setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain))
+    overrides = setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain)
+    stages = resolve(method, preset, **overrides)
+    refit = method_fallback(method, preset, **overrides) if fallback else None
     if align not in ALIGNMENTS:
         raise StatfitError(f"unknown alignment {align!r}; choose one of {', '.join(ALIGNMENTS)}")
     model_file, digest, model = model_identity(model_path, k)
@@ -75,6 +78,6 @@ def batch_register(
         region_vertices(model, region)
     items = prepared_inputs(inputs, out_dir)
     job = FitJob("register", model_file, k, stages, dict(align=align, region=region, refresh_every=refresh,
-                                                         trim=trim, seed=seed, clutter=clutter_choice(clutter)),
+                                                         trim=trim, seed=seed, clutter=clutter_choice(clutter)), fallback=refit,
                  threads=threads, device=str(resolve_device(device, "register")), model_digest=digest, params=params)
     run_fits(items, job, out_dir, workers, scheduler, cluster, timeout, force, quiet, json_out)

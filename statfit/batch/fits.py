@@ -7,7 +7,7 @@ import ctypes
 import os
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
@@ -23,6 +23,7 @@ from statfit.geometry.support import scan_support, view_support
 from statfit.model.params import project, vertex_fields
 from statfit.model.params_file import params_bytes
 from statfit.registration.job import register
+from statfit.core.methods import Fallback
 from statfit.core.settings import Settings
 from statfit.core.threads import flush_denormals_everywhere, limit_threads
 
@@ -37,7 +38,8 @@ class FitJob:
     model file (None: the embedded one) and ``k`` modes; ``stages``: the resolved pipeline;
     ``options``: the command's keyword arguments (align, trim, seed, camera, ...); ``threads``:
     per fit (None: chosen from the problem, at most ``max_threads``); ``model_digest``: the model
-    file's content hash, so a changed model redoes the batch."""
+    file's content hash, so a changed model redoes the batch; ``fallback``: register's
+    (:class:`statfit.core.methods.Fallback`), None for none."""
     command: str
     model: str | None
     k: int | None
@@ -48,11 +50,13 @@ class FitJob:
     device: str = "cpu"
     model_digest: str = ""
     params: bool = False
+    fallback: Fallback | None = None
 
     def settings(self) -> dict[str, Any]:
         """Everything that decides an output, as plain JSON (the manifest's settings key)."""
         return dict(command=self.command, model=self.model, model_digest=self.model_digest, k=self.k, stages=[s.describe() for s in self.stages],
-                    options=self.options, device=self.device, statfit=__version__, **({"params": True} if self.params else {}))
+                    options=self.options, device=self.device, statfit=__version__, **({"params": True} if self.params else {}),
+                    **({"fallback": asdict(self.fallback)} if self.fallback else {}))
 
 
 @dataclass
@@ -108,8 +112,9 @@ def _fit(job: FitJob, source: str, model: StatModel) -> tuple[bytes, dict[str, A
     common = dict(stages=job.stages, device=job.device, threads=job.threads)
     if job.command == "register":
         scan = load_scan(source, job.options.get("seed", 0))
-        result = register(model, scan, **common, **job.options)
-        pose = {"model_to_scan": result.transform.as_matrix().tolist(), "pose": result.pose}
+        result = register(model, scan, **common, **job.options, fallback=job.fallback)
+        pose = {"model_to_scan": result.transform.as_matrix().tolist(), "pose": result.pose,
+                "fallback": result.fallback}
         support = scan_support(result.vertices, scan.points)
     elif job.command == "render":
         options = dict(job.options)

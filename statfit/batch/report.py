@@ -38,7 +38,8 @@ from statfit.renderer.shading import normal_image
 from statfit.structures.camera import Camera
 
 COLUMNS = ("input", "output", "status", "reason", "outlier", "error_mean", "error_median", "error_unit",
-           "landmark_error", "pose_ambiguous", "pose_score", "pose_runner_up", "hair_share", "seconds")
+           "landmark_error", "pose_ambiguous", "pose_score", "pose_runner_up", "hair_share", "fit_residual",
+           "fell_back", "seconds")
 THUMBNAIL = 160             # pixels: the register view's side, the render pair's height
 MAX_POINTS = 50_000         # a larger scan's error is measured on this many of its points (a fixed draw)
 OUTLIER_MADS = 3.0          # mean error above median + this many MADs (of the batch's rows) is an outlier
@@ -63,6 +64,8 @@ class ReportRow:
     pose_score: float | None = None
     pose_runner_up: float | None = None
     hair_share: float | None = None
+    fit_residual: float | None = None       # register's default: its fit's residual in model radii (fallback test)
+    fell_back: bool | None = None           # and whether it refitted with the fallback's method
     seconds: float | None = None
     thumbnail: bytes | None = field(default=None, repr=False)   # PNG
 
@@ -142,10 +145,12 @@ def input_row(batch: Batch, source: str) -> ReportRow:
         return ReportRow(source, reason=PENDING)
     summary = fit.get("summary") or {}
     pose = summary.get("pose") or {}
+    fallback = summary.get("fallback") or {}
     row = ReportRow(source, str(fit.get("output", "")), fit["status"], fit.get("error") or "",
                     seconds=_number(fit.get("seconds")), pose_ambiguous=pose.get("ambiguous"),
                     pose_score=_number(pose.get("score")), pose_runner_up=_number(pose.get("runner_up")),
-                    hair_share=_number(pose.get("hair_share")))
+                    hair_share=_number(pose.get("hair_share")), fit_residual=_number(fallback.get("residual")),
+                    fell_back=fallback.get("used"))
     if row.status != "done":
         return row
     try:

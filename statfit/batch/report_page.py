@@ -68,6 +68,12 @@ def _number(value: float | None, digits: str = ".4g", scale: float = 1.0) -> str
     return _cell(_fmt(value, digits, scale), "" if value is None else repr(value), "num")
 
 
+def _residual(row: ReportRow) -> str:
+    """register's default: its fit's mean distance to the scan in model radii, and whether it fell back."""
+    text = _fmt(row.fit_residual, ".2%") + (", fell back" if row.fell_back else "")
+    return _cell(html.escape(text), "" if row.fit_residual is None else repr(row.fit_residual), "num")
+
+
 def _thumbnail(row: ReportRow) -> str:
     if row.thumbnail is None:
         return _cell("—", "")
@@ -98,6 +104,7 @@ COLUMNS: tuple[tuple[str, str, Callable[[ReportRow], str]], ...] = (
     ("landmark_error", "landmark error", lambda r: _number(r.landmark_error)),
     ("pose", "pose (runner-up/best)", _pose),
     ("hair_share", "hair share", lambda r: _number(r.hair_share, ".1%")),
+    ("fit_residual", "fit residual", _residual),
     ("seconds", "seconds", lambda r: _number(r.seconds, ".1f")),
 )
 

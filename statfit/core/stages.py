@@ -26,7 +26,9 @@ class Fit:
     model's frame onto it (the pre-alignment: scan for register, camera world for render); the
     stages run, the last stage's loss terms, wall seconds (``stage_seconds`` per part of the loop)
     and the iterations run in all; ``pose`` the automatic alignment's report, if one ran; ``threads``
-    the CPU threads it ran on."""
+    the CPU threads it ran on; ``fallback``: register's goodness-of-fit test, if one ran (the method
+    it falls back to, the fit's ``residual`` and the ``threshold``, in the posed model's RMS radii, and
+    whether it was ``used``: then ``stages`` are the fallback's)."""
 
     vertices: np.ndarray
     transform: Similarity
@@ -37,6 +39,7 @@ class Fit:
     iterations: int = 0
     pose: dict | None = None
     threads: int = 1
+    fallback: dict | None = None
 
 
 @dataclass

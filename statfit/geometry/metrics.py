@@ -5,7 +5,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from statfit.geometry.closest import ClosestPointQuery
+from statfit.geometry.closest import ClosestPointQuery, open_edges
 from statfit.structures.frame import Frame
 from statfit.renderer import Camera, rasterize
 
@@ -56,6 +56,17 @@ def surface_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray
     query = ClosestPointQuery(faces, len(vertices), k=12)
     hit = query(torch.as_tensor(vertices, dtype=torch.float64), torch.as_tensor(points, dtype=torch.float64))
     return hit.distance.numpy()
+
+
+def inside_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """:func:`surface_distance`, NaN where the nearest surface point lies on the surface's open
+    boundary: the point lies beyond what the surface covers (a scan's shoulders past a head cut
+    at the neck), so its distance says nothing of the fit. (M,)"""
+    query = ClosestPointQuery(faces, len(vertices), k=12)
+    hit = query(torch.as_tensor(vertices, dtype=torch.float64), torch.as_tensor(points, dtype=torch.float64))
+    opposite_open = open_edges(torch.as_tensor(faces))[hit.triangle]          # (M, 3): edge opposite corner i
+    on_boundary = (opposite_open & (hit.barycentric < 1e-6)).any(dim=1)
+    return np.where(on_boundary.numpy(), np.nan, hit.distance.numpy())
 
 
 def _summary(values: np.ndarray, scale: float) -> dict[str, float]:

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
@@ -10,6 +11,7 @@ import torch
 
 from statfit.geometry.align import Similarity, icp, initial_guess, umeyama
 from statfit.geometry.closest import ClosestPointQuery
+from statfit.geometry.metrics import inside_distance
 from statfit.core.device import resolve_device
 from statfit.errors import StatfitError, StatfitWarning
 from statfit.core.fit import StageTimer
@@ -17,13 +19,13 @@ from statfit.structures.frame import UNIT_MISMATCH_FACTOR, Frame
 from statfit.registration.pose.hypotheses import DISTINCT_DEGREES
 from statfit.registration.pose.search import CLUTTER_MATCHED, estimate_pose, refine_pose
 from statfit.registration.hair import hair_points
-from statfit.core.methods import landmark_weight as method_landmark_weight, resolve
+from statfit.core.methods import Fallback, fallback as method_fallback, landmark_weight as method_landmark_weight, resolve
 from statfit.core.settings import FitSpace, Settings
 from statfit.model.statmodel import StatModel, face_triangles, region_triangles, scalp_triangles
 from statfit.objectives.landmarks import LandmarkObjective, WithLandmarks
 from statfit.objectives.scan import ScanObjective
 from statfit.structures.scan import Scan, sample_size
-from statfit.core.stages import Fit, run_stages
+from statfit.core.stages import Fit, PipelineResult, run_stages
 from statfit.core.threads import choose_threads, intra_op_threads
 
 ALIGNMENTS = ("auto", "none", "rigid", "similarity")
@@ -144,7 +146,8 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
              timer: StageTimer | None = None, stages: tuple[Settings, ...] | None = None,
              region: str | None = None, landmarks: np.ndarray | None = None,
              on_snapshot: Callable[[int, np.ndarray], None] | None = None, threads: int | None = None,
-             landmark_weight: float | None = None, clutter: bool | None = None, **overrides: Any) -> Fit:
+             landmark_weight: float | None = None, clutter: bool | None = None,
+             fallback: Fallback | bool | None = True, **overrides: Any) -> Fit:
     """Fit ``model`` to the scan ``points`` (M, 3), or a :class:`statfit.structures.scan.Scan` (e.g. drawn
     from a mesh scan by area), with ``method``.
 
@@ -171,7 +174,15 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
     intra-op threads for the fit (default: chosen from the model's size, :mod:`statfit.core.threads`).
 
     ``overrides`` (iterations, lr, beta, power, lam, laplacian, solver, mode_gain) replace the
-    method's settings; ``stages`` replaces the method altogether by an explicit pipeline. Warns (StatfitWarning) when the scan is far from the model with align='none'.
+    method's settings; ``stages`` replaces the method altogether by an explicit pipeline.
+    ``fallback``: True, the method's own (:func:`statfit.core.methods.fallback`: the default
+    pipeline's, unless ``stages`` or ``overrides`` are given); a :class:`Fallback`; False or None: none.
+    Where the fit leaves the scan points it was given farther than the fallback's residual from its
+    surface on average, the fallback's method refits from the same pose and its fit is returned (a
+    StatfitWarning says so; the result's ``fallback`` reports the residual either way). The points
+    are those the data term was given (the hair left out); it does not apply where the data term
+    keeps to a region (``region``, or the face alone under hair): there the residual measures what
+    the fit leaves out by design. Warns (StatfitWarning) when the scan is far from the model with align='none'.
     """
     scan = points if isinstance(points, Scan) else Scan.from_points(check_scan(points))
     # a dense scan: a subsample spread over it, sized from the model (statfit.structures.scan.sample_size)
@@ -181,10 +192,11 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
         raise StatfitError(f"trim must lie in [0, 1), got {trim}")
     if refresh_every < 1:
         raise StatfitError(f"refresh_every must be at least 1, got {refresh_every}")
-    if landmark_weight is None:
-        landmark_weight = method_landmark_weight(method)
-    if not (np.isfinite(landmark_weight) and 0 <= landmark_weight <= 1e6):
-        raise StatfitError(f"landmark_weight must be a finite number in [0, 1e6], got {landmark_weight}")
+    weight = method_landmark_weight(method) if landmark_weight is None else landmark_weight
+    if not (np.isfinite(weight) and 0 <= weight <= 1e6):
+        raise StatfitError(f"landmark_weight must be a finite number in [0, 1e6], got {weight}")
+    if fallback is True:
+        fallback = None if stages is not None else method_fallback(method, preset, **overrides)
     stages = stages or resolve(method, preset, **overrides)
     torch_device = resolve_device(device, "register")
     threads = choose_threads(model.basis.size, threads)
@@ -198,48 +210,110 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
             warnings.warn(f"the scan's pose is ambiguous: the best scores {pose['score']:.3f}, another "
                           f"{DISTINCT_DEGREES:.0f}° or more away {pose['runner_up']:.3f} (0 best, 1 worst); check the "
                           "fit, or give --landmarks", StatfitWarning, stacklevel=2)
-        frame = Frame.of(model.template)
-        space = FitSpace.of(model, frame, torch_device, dtype)
-        fit_points = torch.as_tensor(frame.to_unit(transform.inverse_apply(points)), dtype=dtype, device=torch_device)
-        fit_normals = torch.as_tensor(scan.normals @ transform.rotation, dtype=dtype, device=torch_device)
-        query = ClosestPointQuery(model.faces, model.num_vertices, k=2, device=torch_device)
-        # --preset paper: the paper's fits start from the template (here: the mean at the pose)
-        start = fit_start(space, query, fit_points, fit_normals, None if preset == "paper" else shape, stages[0], trim)
         if clutter is None:   # the pose search found points no shape of the model explains
             clutter = pose is not None and pose["matched"] < CLUTTER_MATCHED
+        posed = _PosedScan(model, scan, points, transform, pose, None if preset == "paper" else shape, torch_device,
+                           dtype, trim, region, region_faces, clutter, landmarks)
+        timer = timer or StageTimer.for_device(torch_device)
+        fit = posed.fit(stages, weight, refresh_every, timer, on_record, on_snapshot, warn_far=align == "none")
+        report = None
+        if fallback and fit.whole_model:
+            residual = posed.residual(fit)
+            report = {"method": fallback.method, "residual": residual, "threshold": fallback.residual,
+                      "used": bool(residual > fallback.residual)}
+            if report["used"]:
+                warnings.warn(f"the fit leaves the scan {residual:.1%} of the model's radius away on average (over "
+                              f"{fallback.residual:.0%}): a shape the model cannot make, so its guess of what the scan "
+                              f"does not show is unreliable; refitted with {fallback.method} (docs/method.md, "
+                              "\"When the model cannot explain the scan\")", StatfitWarning, stacklevel=2)
+                stages = resolve(fallback.method)
+                weight = method_landmark_weight(fallback.method) if landmark_weight is None else landmark_weight
+                first = fit.result.iterations
+                fit = posed.fit(stages, weight, refresh_every, timer, on_record, on_snapshot, warn_far=False)
+                fit.result.iterations += first
+        return Fit(posed.to_scan_frame(fit.result.vertices), transform, stages, fit.result.loss,
+                   time.perf_counter() - started, dict(timer.seconds), fit.result.iterations, fit.pose, threads,
+                   report)
+
+
+@dataclass
+class _StagesRun:
+    """One pipeline's fit of a posed scan: the result, the pose report with the fit's clutter
+    facts, the scan points (M', 3, fit frame) its data term was given, and whether it was given
+    the whole model (no region: neither the user's nor the face alone under hair)."""
+
+    result: PipelineResult
+    pose: dict | None
+    points: torch.Tensor
+    whole_model: bool
+
+
+class _PosedScan:
+    """A scan placed on the model (the pose search's or the landmarks' similarity), ready for one
+    pipeline's fit or several (the fallback's refit shares the pose)."""
+
+    def __init__(self, model: StatModel, scan: Scan, points: np.ndarray, transform: Similarity, pose: dict | None,
+                 shape: np.ndarray | None, device: torch.device, dtype: torch.dtype, trim: float,
+                 region: str | None, region_faces: torch.Tensor | None, clutter: bool, landmarks: np.ndarray | None):
+        self.model, self.transform, self.pose, self.shape = model, transform, pose, shape
+        self.trim, self.clutter, self.landmarks = trim, clutter, landmarks
+        self.region, self.region_faces = region, region_faces
+        self.device, self.dtype = device, dtype
+        self.frame = frame = Frame.of(model.template)
+        self.space = FitSpace.of(model, frame, device, dtype)
+        self.points = torch.as_tensor(frame.to_unit(transform.inverse_apply(points)), dtype=dtype, device=device)
+        self.normals = torch.as_tensor(scan.normals @ transform.rotation, dtype=dtype, device=device)
+        self.query = ClosestPointQuery(model.faces, model.num_vertices, k=2, device=device)
+
+    def to_scan_frame(self, x: torch.Tensor) -> np.ndarray:
+        return self.transform.apply(self.frame.from_unit(x.detach().cpu().double().numpy()))
+
+    def fit(self, stages: tuple[Settings, ...], landmark_weight: float, refresh_every: int, timer: StageTimer,
+            on_record: Callable[[int, dict[str, float]], None] | None,
+            on_snapshot: Callable[[int, np.ndarray], None] | None, warn_far: bool) -> _StagesRun:
+        """Run ``stages`` from where their first stage starts (:func:`fit_start`), the hair left out
+        where the clutter rules find it (the hair test starts where the fit does)."""
+        model, space, device, trim = self.model, self.space, self.device, self.trim
+        fit_points, fit_normals, region_faces = self.points, self.normals, self.region_faces
+        start = fit_start(space, self.query, fit_points, fit_normals, self.shape, stages[0], trim)
         hair_share = None
-        if clutter and region is None and (face := face_triangles(model)) is not None:
-            face = torch.as_tensor(face, device=torch_device)
-            scalp = torch.as_tensor(scalp_triangles(model), device=torch_device)
-            hair = hair_points(space, query, fit_points, fit_normals, face, trim, start, scalp)
+        if self.clutter and self.region_faces is None and (face := face_triangles(model)) is not None:
+            face = torch.as_tensor(face, device=device)
+            scalp = torch.as_tensor(scalp_triangles(model), device=device)
+            hair = hair_points(space, self.query, fit_points, fit_normals, face, trim, start, scalp)
             if hair is None:                    # no head under that much: fit the face alone
                 region_faces = face
             else:                               # fit everything but the hair
                 hair_share = float(hair.double().mean())
                 fit_points, fit_normals = fit_points[~hair], fit_normals[~hair]
+        pose = self.pose
         if pose is not None:
-            pose = {**pose, "clutter_rules": clutter, "face_only": clutter and region is None
+            pose = {**pose, "clutter_rules": self.clutter, "face_only": self.clutter and self.region_faces is None
                     and region_faces is not None, "hair_share": hair_share}
-        objective = ScanObjective(fit_points, query, refresh_every=refresh_every, trim=trim, region_faces=region_faces,
-                                  normals=fit_normals, clutter=clutter)
+        objective = ScanObjective(fit_points, self.query, refresh_every=refresh_every, trim=trim,
+                                  region_faces=region_faces, normals=fit_normals, clutter=self.clutter)
         median = float(objective.refresh(start).distance.median())
         if objective.kept == 0:
-            raise StatfitError(f"no scan point lies closest to the region {region!r}: is the scan of another part?")
-        if align == "none" and landmarks is None and median > FAR_DISTANCE:
-            warnings.warn(f"the scan is far from the model (median distance {median * frame.scale:.3g}, "
-                          f"{median:.2f} model radii); consider --align rigid", StatfitWarning, stacklevel=2)
-        if landmarks is not None and landmark_weight > 0:
-            present = present_landmarks(model, landmarks)
-            targets = frame.to_unit(transform.inverse_apply(np.asarray(landmarks, dtype=np.float64)[present]))
+            raise StatfitError(f"no scan point lies closest to the region {self.region!r}: is the scan of another part?")
+        if warn_far and self.landmarks is None and median > FAR_DISTANCE:
+            warnings.warn(f"the scan is far from the model (median distance {median * self.frame.scale:.3g}, "
+                          f"{median:.2f} model radii); consider --align rigid", StatfitWarning, stacklevel=3)
+        if self.landmarks is not None and landmark_weight > 0:
+            present = present_landmarks(model, self.landmarks)
+            targets = self.frame.to_unit(self.transform.inverse_apply(
+                np.asarray(self.landmarks, dtype=np.float64)[present]))
             objective = WithLandmarks(objective, LandmarkObjective(
-                torch.as_tensor(model.landmarks[present], device=torch_device),
-                torch.as_tensor(targets, dtype=dtype, device=torch_device), landmark_weight))
-        timer = timer or StageTimer.for_device(torch_device)
-        def to_scan_frame(x: torch.Tensor) -> np.ndarray:
-            return transform.apply(frame.from_unit(x.detach().cpu().double().numpy()))
+                torch.as_tensor(model.landmarks[present], device=device),
+                torch.as_tensor(targets, dtype=self.dtype, device=device), landmark_weight))
+        snapshot = None if on_snapshot is None else lambda it, x: on_snapshot(it, self.to_scan_frame(x))
+        result = run_stages(stages, space, objective, start, on_record=on_record, on_snapshot=snapshot, timer=timer)
+        return _StagesRun(result, pose, fit_points, region_faces is None)
 
-        snapshot = None if on_snapshot is None else lambda it, x: on_snapshot(it, to_scan_frame(x))
-        result = run_stages(stages, space, objective, start, on_record=on_record,
-                            on_snapshot=snapshot, timer=timer)
-        return Fit(to_scan_frame(result.vertices), transform, stages, result.loss,
-                            time.perf_counter() - started, dict(timer.seconds), result.iterations, pose, threads)
+    def residual(self, run: _StagesRun) -> float:
+        """The mean distance of the scan points the fit was given to its surface, in the posed
+        model's RMS radii (the fit frame's unit), points beyond its open boundary left out
+        (:func:`statfit.geometry.metrics.inside_distance`); 0 if every point lies beyond."""
+        distance = inside_distance(run.points.detach().cpu().double().numpy(),
+                                   run.result.vertices.detach().cpu().double().numpy(), self.model.faces)
+        inside = distance[np.isfinite(distance)]
+        return float(inside.mean()) if inside.size else 0.0
