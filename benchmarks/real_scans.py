@@ -116,6 +116,8 @@ def clutter_case(seed: int, method: str) -> dict:
         row[f"face_mm_{clutter}"] = float(np.linalg.norm(fit.vertices - made.truth, axis=1)[near].mean()
                                           * MM_PER_UNIT[units])
         row[f"ratio_{clutter}"] = made.clutter_ratio
+        if fit.fallback:
+            row[f"fallback_{clutter}"] = fit.fallback
     return row
 
 

@@ -56,17 +56,11 @@ def case_scan(people: str, seed: int):
 
 
 def inside_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Distances (M,) from ``points`` (M, 3) to the surface, NaN where the nearest surface point lies
-    on the surface's open boundary (the point is beyond what the surface covers)."""
-    import torch
+    """Distances (M,) from ``points`` (M, 3) to the surface, NaN beyond its open boundary
+    (:func:`statfit.geometry.metrics.inside_distance`, which the register fallback also uses)."""
+    from statfit.geometry.metrics import inside_distance as library_inside_distance
 
-    from statfit.geometry.closest import ClosestPointQuery, open_edges
-
-    query = ClosestPointQuery(faces, len(vertices), k=12)
-    hit = query(torch.as_tensor(vertices, dtype=torch.float64), torch.as_tensor(points, dtype=torch.float64))
-    opposite_open = open_edges(torch.as_tensor(faces))[hit.triangle]          # (M, 3): edge opposite corner i
-    on_boundary = (opposite_open & (hit.barycentric < 1e-6)).any(dim=1)
-    return np.where(on_boundary.numpy(), np.nan, hit.distance.numpy())
+    return library_inside_distance(points, vertices, faces)
 
 
 def fit_case(people: str, model_family: str, seed: int, half: str, method: str) -> dict:
@@ -89,16 +83,16 @@ def fit_case(people: str, model_family: str, seed: int, half: str, method: str) 
     row = {"people": people, "model": model_family, "seed": seed, "half": half, "method": method}
     try:
         if method == "mean":
-            vertices, seconds = estimate_pose(model, fitted_half).transform.apply(model.template), 0.0
+            vertices, seconds, fallback = estimate_pose(model, fitted_half).transform.apply(model.template), 0.0, None
         else:
             result = register_candidate(method, model, fitted_half, threads=1)
-            vertices, seconds = result.vertices, result.seconds
+            vertices, seconds, fallback = result.vertices, result.seconds, result.fallback
     except Exception as exc:   # a refusal is a result too
         return row | {"error": f"{type(exc).__name__}: {exc}".splitlines()[0]}
     held = inside_distance(scan.points[~seen], vertices, model.faces)
     seen_distance = inside_distance(scan.points[seen], vertices, model.faces)
     return row | {"held": float(np.nanmean(held)), "held_covered": float(np.mean(~np.isnan(held))),
-                  "seen": float(np.nanmean(seen_distance)), "seconds": seconds}
+                  "seen": float(np.nanmean(seen_distance)), "seconds": seconds} | ({"fallback": fallback} if fallback else {})
 
 
 def index_rows(rows: list[dict]) -> tuple[dict, list[tuple[str, str]], list[str]]:

@@ -82,10 +82,10 @@ def fit_case(people: str, model_family: str, seed: int, half: str, method: str) 
     row = {"people": people, "model": model_family, "seed": seed, "half": half, "method": method}
     try:
         if method == "mean":
-            vertices, seconds = landmark_alignment(model, data["landmarks"]).apply(model.template), 0.0
+            vertices, seconds, fallback = landmark_alignment(model, data["landmarks"]).apply(model.template), 0.0, None
         else:
             result = register_candidate(method, model, data["seen"], landmarks=data["landmarks"], threads=1)
-            vertices, seconds = result.vertices, result.seconds
+            vertices, seconds, fallback = result.vertices, result.seconds, result.fallback
     except Exception as exc:   # a refusal is a result too
         return row | {"error": f"{type(exc).__name__}: {exc}".splitlines()[0]}
     held = inside_distance(data["held"], vertices, model.faces)
@@ -94,7 +94,7 @@ def fit_case(people: str, model_family: str, seed: int, half: str, method: str) 
                   "seen": float(np.nanmean(inside_distance(data["seen"].points, vertices, model.faces))),
                   "held_lm": float(np.linalg.norm(vertices[model.landmarks[held_lm]] - data["truth"][held_lm],
                                                   axis=1).mean()),
-                  "seconds": seconds}
+                  "seconds": seconds} | ({"fallback": fallback} if fallback else {})
 
 
 def report(rows: list[dict]) -> str:

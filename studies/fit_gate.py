@@ -388,7 +388,7 @@ def fit_whole_face(case: str, method: str) -> dict:
             "all": float(np.linalg.norm(result.vertices - data["truth"], axis=1).mean()),
             "landmark_mm": float(np.linalg.norm(result.vertices[data["indices"]] - data["truth"][data["indices"]],
                                                 axis=1).mean()),
-            "seen": seen, "beyond": beyond}
+            "seen": seen, "beyond": beyond} | ({"fallback": result.fallback} if result.fallback else {})
 
 
 def fit_in_span(case: str, method: str) -> dict:
@@ -403,7 +403,7 @@ def fit_in_span(case: str, method: str) -> dict:
     seen, beyond = seen_residual(data.points, result.vertices, model.faces)
     return {"set": "§9", "case": case, "method": method, "unit": "cm", "seconds": result.seconds,
             "all": float(np.linalg.norm(result.vertices - data.target, axis=1).mean()),
-            "seen": seen, "beyond": beyond}
+            "seen": seen, "beyond": beyond} | ({"fallback": result.fallback} if result.fallback else {})
 
 
 def in_family_runs() -> list[tuple]:

@@ -127,19 +127,20 @@ def fit(method: str, name: str, half: str, k: int) -> dict:
     flush_denormals_everywhere()
     data = case_data(name, half)
     model = with_landmarks(ict_model(), data["indices"]).truncated(k)
-    seconds = 0.0
+    seconds, fallback = 0.0, None
     if method == "mean":
         vertices = landmark_alignment(model, data["landmarks"]).apply(model.template)
     else:
         result = register_candidate(method, model, data["seen"], candidates(), threads=1, landmarks=data["landmarks"])
-        vertices, seconds = result.vertices, result.seconds
+        vertices, seconds, fallback = result.vertices, result.seconds, result.fallback
     held = data["held_landmarks"]
     mm = 10.0  # ICT is in cm
     return {"method": method, "case": name, "half": half, "k": k, "seconds": seconds,
             "held": mm * float(surface_distance(data["held"], vertices, model.faces).mean()),
             "seen": mm * float(surface_distance(data["seen"], vertices, model.faces).mean()),
             "held_lm": mm * float(np.linalg.norm(vertices[data["indices"][held]] - data["truth"][held], axis=1).mean()),
-            "all": mm * float(np.linalg.norm(vertices - data["target"], axis=1).mean())}
+            "all": mm * float(np.linalg.norm(vertices - data["target"], axis=1).mean())} | (
+        {"fallback": fallback} if fallback else {})
 
 
 def in_span(method: str) -> dict:
