@@ -54,7 +54,7 @@ FallbackOption = typer.Option(True, "--fallback/--no-fallback", help="register's
                               "the scan it saw more than 2% of the model's radius away on average, the person holds a "
                               "shape the model cannot make and its guess of the unseen part is unreliable: refit with "
                               "laplacian, said on stderr and in the summary's fallback (docs/method.md). Not with "
-                              "--region or any setting overridden.")
+                              "--region, --preset paper or any setting overridden.")
 PresetOption = typer.Option("tuned", help="tuned (our measured defaults) or paper (the paper's settings, exactly).")
 DeviceOption = typer.Option("cpu", envvar="STATFIT_DEVICE", help="auto, cpu or cuda (default: $STATFIT_DEVICE, else cpu). auto: the GPU when "
                             "there is one and the command is not measured faster on the CPU (register is: its "
