@@ -51,8 +51,9 @@ MethodOption = typer.Option("default", help="default (the measured best pipeline
                             + ". register's pca is the closed-form Gauss-Newton fit alone; its default adds 200 hybrid steps."
                             " render's default: two hybrid stages, then the Laplacian filter (docs/studies.md §13).")
 FallbackOption = typer.Option(True, "--fallback/--no-fallback", help="register's default only: where its fit leaves "
-                              "the scan it saw more than 2% of the model's radius away on average, the person holds a "
-                              "shape the model cannot make and its guess of the unseen part is unreliable: refit with "
+                              "the scan it saw more than 2% of the model's radius away on average, or needs more than "
+                              "3.5 standard deviations per mode, the person holds a shape the model cannot make and its "
+                              "guess of the unseen part is unreliable: refit with "
                               "laplacian, said on stderr and in the summary's fallback (docs/method.md). Not with "
                               "--region, --preset paper or any setting overridden.")
 PresetOption = typer.Option("tuned", help="tuned (our measured defaults) or paper (the paper's settings, exactly).")

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from statfit.core.methods import FALLBACK_RESIDUAL, Fallback, fallback, resolve
+from statfit.core.methods import FALLBACK_CODE, FALLBACK_RESIDUAL, Fallback, fallback, resolve
 from statfit.errors import StatfitWarning
 from statfit.geometry.closest import open_edges
 from statfit.registration.job import register
@@ -30,7 +30,8 @@ def scan(embedded_model):
 
 
 def test_only_the_shipped_default_pipeline_has_a_fallback():
-    assert fallback("default") == Fallback("laplacian", FALLBACK_RESIDUAL) == fallback("default", iterations=None)
+    shipped = Fallback("laplacian", FALLBACK_RESIDUAL, FALLBACK_CODE)
+    assert fallback("default") == shipped == fallback("default", iterations=None)
     assert fallback("default", iterations=100) is None           # a tuned-by-hand default was not measured
     assert fallback("default", "paper") is None
     assert fallback("laplacian") is None and fallback("pca") is None
@@ -42,6 +43,7 @@ def test_a_scan_the_model_explains_keeps_the_default_fit_to_the_bit(embedded_mod
     plain = register(embedded_model, scan, threads=1, fallback=False)
     assert gated.fallback["method"] == "laplacian" and gated.fallback["threshold"] == FALLBACK_RESIDUAL
     assert not gated.fallback["used"] and gated.fallback["residual"] < 0.1 * FALLBACK_RESIDUAL
+    assert gated.fallback["code"] < 0.5 * FALLBACK_CODE and gated.fallback["code_threshold"] == FALLBACK_CODE
     assert plain.fallback is None
     np.testing.assert_array_equal(gated.vertices, plain.vertices)
     assert gated.stages == resolve("default") and gated.iterations == plain.iterations
@@ -61,6 +63,23 @@ def test_the_residual_is_the_scans_mean_distance_to_the_fit_in_the_posed_models_
     distance = np.sqrt(squared)
     radius = Frame.of(embedded_model.template).scale * default.transform.scale
     assert result.fallback["residual"] == pytest.approx(distance.mean() / radius, rel=1e-5)
+
+
+def test_the_code_is_the_rms_of_the_fits_least_squares_coefficients_in_standard_deviations(embedded_model, scan):
+    """Against a least-squares solve of the fit (the model's frame) on the model's modes, in std units."""
+    result = register(embedded_model, scan, threads=1, iterations=40)
+    offset = (result.transform.inverse_apply(result.vertices) - embedded_model.template).reshape(-1)
+    coefficients, *_ = np.linalg.lstsq(embedded_model.basis * embedded_model.std, offset, rcond=None)
+    assert result.fallback is None          # overridden settings: the shipped fallback does not apply
+    code = register(embedded_model, scan, threads=1, iterations=40,
+                    fallback=Fallback("laplacian", np.inf)).fallback["code"]
+    assert code == pytest.approx(np.sqrt(np.mean(coefficients ** 2)), rel=1e-4)
+
+
+def test_a_shape_the_model_would_need_unusual_coefficients_for_is_refitted(embedded_model, scan):
+    with pytest.warns(StatfitWarning, match="standard deviations per mode.*refitted with laplacian"):
+        result = register(embedded_model, scan, threads=1, iterations=40, fallback=Fallback("laplacian", np.inf, 0.0))
+    assert result.fallback["used"] and result.stages == resolve("laplacian")
 
 
 def test_a_fit_that_cannot_explain_the_scan_is_laplacians_fit_from_the_same_pose(embedded_model, scan):
@@ -90,6 +109,7 @@ def test_the_cli_reports_the_fallback_and_turns_it_off(tmp_path, embedded_model,
         assert code == 0, err
         summaries[name] = json.loads(log.read_text().splitlines()[-1])
     assert summaries["on"]["fallback"]["threshold"] == FALLBACK_RESIDUAL and not summaries["on"]["fallback"]["used"]
+    assert summaries["on"]["fallback"]["code_threshold"] == FALLBACK_CODE
     assert summaries["off"]["fallback"] is None and summaries["tuned"]["fallback"] is None
     assert (tmp_path / "on.ply").read_bytes() == (tmp_path / "off.ply").read_bytes()
 

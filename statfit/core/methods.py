@@ -177,13 +177,15 @@ for _method in (
 
 @dataclass(frozen=True)
 class Fallback:
-    """Refit with ``method`` (its tuned settings) where a pipeline's fit leaves the scan points it
-    was given more than ``residual`` from its surface on average, in the fitted model's RMS radii
-    (the fit frame's unit): the scan then holds a shape the model cannot make, and its prior guesses
-    the unseen part worse than a smooth fit does (docs/studies.md §23)."""
+    """Refit with ``method`` (its tuned settings) where a pipeline's fit cannot be this model's
+    person: it leaves the scan points it was given more than ``residual`` from its surface on
+    average, in the fitted model's RMS radii (the fit frame's unit), or its shape's code in the
+    model has an RMS over the modes above ``code`` standard deviations (a person of the model has
+    about 1). Its prior then guesses the unseen part worse than a smooth fit does (docs/studies.md §23)."""
 
     method: str
     residual: float
+    code: float = float("inf")
 
 
 @dataclass(frozen=True)
@@ -198,11 +200,13 @@ class Pipeline:
 
 
 # register's fallback: a default fit that leaves the scan points it was given 2% of the model's RMS
-# radius away on average (~1.9 mm on a head) met a person its model cannot make. Chosen on ICT, in
-# family: a round threshold above every in-family case's residual (largest: 1.48%, a scan half clutter;
-# 1.08% on §15's half faces), so no ICT study result moves; checked across families, where it fires on
-# 20 of 126 half faces: §19 4.91 → 4.47 mm held out, §17 3.93 → 3.77 (docs/studies.md §23).
+# radius away on average (~1.9 mm on a head), or whose shape needs 3.5 standard deviations per mode
+# (RMS; a person of the model needs about 1), met a person its model cannot make. Both chosen on ICT,
+# in family: round thresholds above every in-family case's value (residual: 1.48% at most, a scan
+# half clutter; code: 2.94, §15's half faces of people outside the 50 modes fitted), so no ICT study
+# result moves; checked across families (docs/studies.md §23).
 FALLBACK_RESIDUAL = 0.02
+FALLBACK_CODE = 3.5
 
 
 # register: the closed-form coefficients (Gauss–Newton with continuation) find the shape in the
@@ -228,7 +232,7 @@ PIPELINES: dict[str, dict[str, Pipeline]] = {
                                       Settings("hybrid", 200, 0.03, beta=1.0, lam=19.0)),
                                      "the closed-form coefficients, then 200 hybrid steps (docs/studies.md §9); "
                                      "laplacian where they cannot explain the scan (§23)",
-                                     fallback=Fallback("laplacian", FALLBACK_RESIDUAL))},
+                                     fallback=Fallback("laplacian", FALLBACK_RESIDUAL, FALLBACK_CODE))},
     "render": {"default": Pipeline((Settings("hybrid", 150, 0.05, beta=30.0, lam=19.0, mode_gain=1.0),
                                     Settings("hybrid", 300, 0.05, beta=10.0, lam=19.0, mode_gain=1.0),
                                     Settings("laplacian", 600, 0.01, lam=19.0)),

@@ -21,6 +21,7 @@ from statfit.registration.pose.search import CLUTTER_MATCHED, estimate_pose, ref
 from statfit.registration.hair import hair_points
 from statfit.core.methods import Fallback, fallback as method_fallback, landmark_weight as method_landmark_weight, resolve
 from statfit.core.settings import FitSpace, Settings
+from statfit.model.params import project
 from statfit.model.statmodel import StatModel, face_triangles, region_triangles, scalp_triangles
 from statfit.objectives.landmarks import LandmarkObjective, WithLandmarks
 from statfit.objectives.scan import ScanObjective
@@ -178,8 +179,9 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
     ``fallback``: True, the method's own (:func:`statfit.core.methods.fallback`: the default
     pipeline's, unless ``stages`` or ``overrides`` are given); a :class:`Fallback`; False or None: none.
     Where the fit leaves the scan points it was given farther than the fallback's residual from its
-    surface on average, the fallback's method refits from the same pose and its fit is returned (a
-    StatfitWarning says so; the result's ``fallback`` reports the residual either way). The points
+    surface on average, or its shape's code in the model is larger than the fallback's (RMS over the
+    modes, standard deviations), the fallback's method refits from the same pose and its fit is
+    returned (a StatfitWarning says so; the result's ``fallback`` reports both either way). The points
     are those the data term was given (the hair left out); it does not apply where the data term
     keeps to a region (``region``, or the face alone under hair): there the residual measures what
     the fit leaves out by design. Warns (StatfitWarning) when the scan is far from the model with align='none'.
@@ -218,14 +220,18 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
         fit = posed.fit(stages, weight, refresh_every, timer, on_record, on_snapshot, warn_far=align == "none")
         report = None
         if fallback and fit.whole_model:
-            residual = posed.residual(fit)
+            residual, code = posed.residual(fit), posed.code(fit)
             report = {"method": fallback.method, "residual": residual, "threshold": fallback.residual,
-                      "used": bool(residual > fallback.residual)}
+                      "code": code, "code_threshold": fallback.code,
+                      "used": bool(residual > fallback.residual or code > fallback.code)}
             if report["used"]:
-                warnings.warn(f"the fit leaves the scan {residual:.1%} of the model's radius away on average (over "
-                              f"{fallback.residual:.0%}): a shape the model cannot make, so its guess of what the scan "
-                              f"does not show is unreliable; refitted with {fallback.method} (docs/method.md, "
-                              "\"When the model cannot explain the scan\")", StatfitWarning, stacklevel=2)
+                why = (f"leaves the scan {residual:.1%} of the model's radius away on average (over "
+                       f"{fallback.residual:.0%})" if residual > fallback.residual else
+                       f"needs {code:.1f} standard deviations per mode (over {fallback.code:g}; the model's "
+                       "people need about 1)")
+                warnings.warn(f"the fit {why}: a person the model cannot make, so its guess of what the scan does "
+                              f"not show is unreliable; refitted with {fallback.method} (docs/method.md, \"When the "
+                              "model cannot explain the scan\")", StatfitWarning, stacklevel=2)
                 stages = resolve(fallback.method)
                 weight = method_landmark_weight(fallback.method) if landmark_weight is None else landmark_weight
                 first = fit.result.iterations
@@ -317,3 +323,10 @@ class _PosedScan:
                                    run.result.vertices.detach().cpu().double().numpy(), self.model.faces)
         inside = distance[np.isfinite(distance)]
         return float(inside.mean()) if inside.size else 0.0
+
+    def code(self, run: _StagesRun) -> float:
+        """The RMS over the modes of the fitted shape's code in the model (standard deviations:
+        :func:`statfit.model.params.project`, the least-squares coefficients of the fit in the model's
+        frame)."""
+        projection = project(self.model, self.to_scan_frame(run.result.vertices), self.transform)
+        return float(np.sqrt(np.mean(projection.coefficients ** 2)))
