@@ -3,8 +3,10 @@ and checked it (issue 37, part 3; docs/studies.md §23).
 
 The default (closed form, then 200 hybrid steps) now measures, after its fit, how far the scan points
 it was given lie from the fitted surface (mean, in the posed model's RMS radii; points beyond the
-fit's open boundary left out), and above ``statfit.core.methods.FALLBACK_RESIDUAL`` (2%) refits with
-``laplacian`` from the same pose. This reruns the shipped default, as a user gets it, on:
+fit's open boundary left out) and how unusual a person of the model the fitted shape is (the RMS over
+the modes of its code, standard deviations); above ``statfit.core.methods.FALLBACK_RESIDUAL`` (2%) or
+``FALLBACK_CODE`` (3.5) it refits with ``laplacian`` from the same pose (the code's criterion was found
+by studies/span_signals.py). This reruns the shipped default, as a user gets it, on:
 
 - §15 (studies/held_out_half.py): 24 ICT half faces with landmarks, ICT's first 50 modes: in family;
 - §12 (studies/landmark_term.py via fit_gate.fit_whole_face): 4 whole faces, 30 modes, landmarks: in family;
@@ -15,8 +17,8 @@ fit's open boundary left out), and above ``statfit.core.methods.FALLBACK_RESIDUA
 - §19 (studies/cross_family_landmarks.py): 72 half faces with landmarks, 3 families × 3 models;
 - §17 (studies/cross_family.py): the half scans without landmarks, 4 families (the stored cases).
 
-The threshold was chosen on the in-family sets (from §21's stored residuals: the smallest round value
-above all of them); §19 and §17 check it. Each row is the study's own row for method ``default``
+The thresholds were chosen on the in-family sets (round values above all of theirs); §19 and §17
+check them. Each row is the study's own row for method ``default``
 with the fallback's report; the report sets it beside the stored rows of the default before the
 fallback and of ``laplacian`` (the same fits: a gate that does not fire leaves the default's fit
 unchanged to the bit, one that fires returns ``laplacian``'s).
@@ -26,7 +28,6 @@ unchanged to the bit, one that fires returns ``laplacian``'s).
 """
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
@@ -37,7 +38,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from study_runs import run_or_report  # noqa: E402
+from study_runs import study_main  # noqa: E402
 
 RESULTS = ROOT / "studies" / "results"
 ROWS = RESULTS / "default_fallback.json"
@@ -121,8 +122,8 @@ def report(rows: list[dict]) -> str:
              "stored fit of the method kept (within 1e-9 relative), the worst case ÷ the default before, and "
              "time ÷ the default before (the stored seconds).", "",
              "| set | cases | default before | laplacian | default now | now ÷ before | fired | reproduced | "
-             "worst case ÷ before | residual, max of kept / min of fired (%) | time ÷ before |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "worst case ÷ before | residual, max of kept / min of fired (%) | code, max of kept / min of fired | "
+             "time ÷ before |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     pair_lines: list[str] = []
     for name in (*IN_FAMILY, *CROSS_FAMILY):
         old = stored(name)
@@ -136,17 +137,49 @@ def report(rows: list[dict]) -> str:
         now = np.array([new[k][error] for k in keys])
         fired = np.array([bool(new[k].get("fallback", {}).get("used")) for k in keys])
         residual = np.array([new[k].get("fallback", {}).get("residual", np.nan) for k in keys])
+        code = np.array([new[k].get("fallback", {}).get("code", np.nan) for k in keys])
         kept = np.where(fired, lap, before)
         same = int(np.sum(np.abs(now - kept) <= 1e-9 * np.abs(kept)))
         seconds = sum(new[k]["seconds"] for k in keys) / sum(old[(k, "default")]["seconds"] for k in keys)
         spread = (f"{100 * np.nanmax(residual[~fired]):.2f} / "
                   f"{100 * np.nanmin(residual[fired]):.2f}" if fired.any() else f"{100 * np.nanmax(residual):.2f} / –")
+        spread_code = (f"{np.nanmax(code[~fired]):.2f} / {np.nanmin(code[fired]):.2f}" if fired.any()
+                       else f"{np.nanmax(code):.2f} / –")
         lines.append(f"| {name} | {len(keys)} | {before.mean():.4g} | {lap.mean():.4g} | {now.mean():.4g} | "
                      f"{now.mean() / before.mean():.3f} | {fired.sum()}/{len(keys)} | {same}/{len(keys)} | "
-                     f"{(now / before).max():.2f} | {spread} | {seconds:.2f} |")
+                     f"{(now / before).max():.2f} | {spread} | {spread_code} | {seconds:.2f} |")
         if name in CROSS_FAMILY:
             pair_lines += pair_table(name, keys, old, new)
-    return "\n".join(lines + [""] + clutter_table(rows) + [""] + pair_lines)
+    return "\n".join(lines + [""] + criteria_table(rows) + [""] + clutter_table(rows) + [""] + pair_lines)
+
+
+def criteria_table(rows: list[dict]) -> list[str]:
+    """Each criterion alone, both (shipped) and other thresholds, from the rows' residual and code and
+    the stored fits of the default and ``laplacian``: mean error per set (fired / cases)."""
+    from statfit.core.methods import FALLBACK_CODE, FALLBACK_RESIDUAL
+
+    def rule(residual: float, code: float):
+        return lambda f: f["residual"] > residual or f["code"] > code
+
+    rules = {"residual alone": rule(FALLBACK_RESIDUAL, np.inf), "code alone": rule(np.inf, FALLBACK_CODE),
+             "both (shipped)": rule(FALLBACK_RESIDUAL, FALLBACK_CODE)}
+    rules |= {f"residual {t:.3g}%, code {FALLBACK_CODE:g}": rule(t / 100, FALLBACK_CODE) for t in (1.0, 1.5, 3.0)}
+    rules |= {f"residual {FALLBACK_RESIDUAL:.0%}, code {t:g}": rule(FALLBACK_RESIDUAL, t) for t in (3.0, 4.0, 5.0)}
+    names = (*IN_FAMILY, *CROSS_FAMILY)
+    lines = [f"Each criterion alone (residual > {FALLBACK_RESIDUAL:.0%}, code > {FALLBACK_CODE:g}), both, and other "
+             "thresholds: mean error per set (fired / cases).", "", "| rule | " + " | ".join(names) + " |",
+             "|---|" + "---|" * len(names)]
+    for label, fires in rules.items():
+        cells = []
+        for name in names:
+            old = stored(name)
+            new = {row_key(r)[1:]: r for r in rows if r["set"] == name and ERROR[name] in r and "fallback" in r}
+            keys = [k for k in new if (k, "default") in old]
+            fired = [fires(new[k]["fallback"]) for k in keys]
+            value = np.mean([old[(k, "laplacian" if f else "default")][ERROR[name]] for k, f in zip(keys, fired)])
+            cells.append(f"{value:.4g} ({sum(fired)}/{len(keys)})")
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def clutter_table(rows: list[dict]) -> list[str]:
@@ -159,15 +192,16 @@ def clutter_table(rows: list[dict]) -> list[str]:
     lines = ["§8 (ICT people with clutter; face error, mm, mean over the vertices within 3 cm of an inner "
              "landmark): the stored default and the shipped one.", "",
              "| clutter per shape point | scans | face mm before | face mm now | fired | residual max (%) | "
-             "worst scan ÷ before |", "|---|---|---|---|---|---|---|"]
+             "code max | worst scan ÷ before |", "|---|---|---|---|---|---|---|---|"]
     for clutter in CLUTTER:
         before = np.array([old[s][f"face_mm_{clutter}"] for s in seeds])
         now = np.array([new[s][f"face_mm_{clutter}"] for s in seeds])
         reports = [new[s].get(f"fallback_{clutter}", {}) for s in seeds]
         fired = sum(bool(r.get("used")) for r in reports)
         residual = max(r.get("residual", float("nan")) for r in reports)
+        code = max(r.get("code", float("nan")) for r in reports)
         lines.append(f"| {clutter} | {len(seeds)} | {before.mean():.3f} | {now.mean():.3f} | {fired}/{len(seeds)} | "
-                     f"{100 * residual:.2f} | {(now / before).max():.3f} |")
+                     f"{100 * residual:.2f} | {code:.2f} | {(now / before).max():.3f} |")
     return lines
 
 
@@ -196,10 +230,7 @@ def pair_table(name: str, keys: list[tuple], old: dict, new: dict) -> list[str]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--report", action="store_true", help="only print the tables of the stored rows")
-    args = parser.parse_args()
-    run_or_report(run_case, runs(), ROWS, report, args.report, key=row_key)
+    study_main(__doc__, run_case, runs, ROWS, report, row_key)
 
 
 if __name__ == "__main__":

@@ -29,3 +29,15 @@ def run_or_report(run_case: Callable[..., dict], runs: list[tuple], results: Pat
                 results.write_text(json.dumps(rows, indent=1))
                 print(f"{count}/{len(todo)}", *(rows[-1].get(k, "") for k in list(rows[-1])[:5]), flush=True)
     print(report(json.loads(results.read_text())))
+
+
+def study_main(doc: str, run_case: Callable[..., dict], runs: Callable[[], list[tuple]], results: Path,
+               report: Callable[[list[dict]], str], key: Callable[[dict], tuple]) -> None:
+    """A study's command line: ``--report`` prints the stored rows' tables; otherwise the runs the
+    stored rows lack are run first (:func:`run_or_report`)."""
+    import argparse
+
+    parser = argparse.ArgumentParser(description=doc.split("\n")[0])
+    parser.add_argument("--report", action="store_true", help="only print the tables of the stored rows")
+    args = parser.parse_args()
+    run_or_report(run_case, [] if args.report else runs(), results, report, args.report, key=key)
