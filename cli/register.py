@@ -10,14 +10,15 @@ from statfit.io.files import existing_file
 from statfit.io.mesh import check_writable, load_scan, mesh_bytes, mesh_format
 from statfit.io.landmarks import read_landmarks
 from statfit.core.device import resolve_device
-from statfit.core.methods import LANDMARK_WEIGHT, fallback as method_fallback, landmark_weight as method_landmark_weight, resolve
+from statfit.core.methods import (LANDMARK_WEIGHT, fallback as method_fallback,
+                                  landmark_weight as method_landmark_weight, resolve)
 from statfit.registration.job import register as fit_scan
 from statfit.model.importers.cache import open_model
 from statfit.geometry.support import scan_support
 from statfit.model.params import project, vertex_fields
 from statfit.model.params_file import params_bytes, params_suffix
-from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, FallbackOption, IterationsOption, JsonOption, KOption,
-                                LamOption, LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption,
+from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, FallbackOption, IterationsOption, JsonOption,
+                                KOption, LamOption, LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption,
                                 ModelOption, ParamsOption, PowerOption, PresetOption, QuietOption, SeedOption,
                                 ThreadsOption, clutter_choice, setting_overrides, within)
 from statfit_cli.runner import finish, fit_run

@@ -14,9 +14,10 @@ from statfit.registration.job import ALIGNMENTS
 from statfit_cli.batch.options import (BatchThreadsOption, ClusterOption, ForceOption, InputsArgument, JsonOption,
                                        OutDirOption, SchedulerOption, TimeoutOption, WorkersOption)
 from statfit_cli.batch.running import check_engine, model_identity, prepared_inputs, run_fits
-from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, FallbackOption, IterationsOption, KOption, LamOption,
-                                LaplacianOption, LrOption, MethodOption, ModeGainOption, ModelOption, PowerOption,
-                                PresetOption, QuietOption, SeedOption, clutter_choice, setting_overrides, within)
+from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, FallbackOption, IterationsOption, KOption,
+                                LamOption, LaplacianOption, LrOption, MethodOption, ModeGainOption, ModelOption,
+                                PowerOption, PresetOption, QuietOption, SeedOption, clutter_choice, setting_overrides,
+                                within)
 
 
 def batch_register(
@@ -78,6 +79,7 @@ def batch_register(
         region_vertices(model, region)
     items = prepared_inputs(inputs, out_dir)
     job = FitJob("register", model_file, k, stages, dict(align=align, region=region, refresh_every=refresh,
-                                                         trim=trim, seed=seed, clutter=clutter_choice(clutter)), fallback=refit,
-                 threads=threads, device=str(resolve_device(device, "register")), model_digest=digest, params=params)
+                                                         trim=trim, seed=seed, clutter=clutter_choice(clutter)),
+                 fallback=refit, threads=threads, device=str(resolve_device(device, "register")), model_digest=digest,
+                 params=params)
     run_fits(items, job, out_dir, workers, scheduler, cluster, timeout, force, quiet, json_out)

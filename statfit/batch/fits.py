@@ -55,7 +55,8 @@ class FitJob:
     def settings(self) -> dict[str, Any]:
         """Everything that decides an output, as plain JSON (the manifest's settings key)."""
         return dict(command=self.command, model=self.model, model_digest=self.model_digest, k=self.k, stages=[s.describe() for s in self.stages],
-                    options=self.options, device=self.device, statfit=__version__, **({"params": True} if self.params else {}),
+                    options=self.options, device=self.device, statfit=__version__,
+                    **({"params": True} if self.params else {}),
                     **({"fallback": asdict(self.fallback)} if self.fallback else {}))
 
 

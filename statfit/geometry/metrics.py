@@ -5,7 +5,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from statfit.geometry.closest import ClosestPointQuery, open_edges
+from statfit.geometry.closest import ClosestPointQuery
 from statfit.structures.frame import Frame
 from statfit.renderer import Camera, rasterize
 
@@ -51,20 +51,23 @@ def facing_share(vertices: np.ndarray, faces: np.ndarray) -> float:
     return float(np.linalg.norm(doubled.sum(axis=0)) / total) if total > 0 else 0.0
 
 
+def _exact_closest(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray):
+    """The query (12 candidate vertices a point, float64) and its closest surface points."""
+    query = ClosestPointQuery(faces, len(vertices), k=12)
+    return query, query(torch.as_tensor(vertices, dtype=torch.float64), torch.as_tensor(points, dtype=torch.float64))
+
+
 def surface_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Distance of each of ``points`` (M, 3) to the surface (``vertices``, ``faces``), (M,)."""
-    query = ClosestPointQuery(faces, len(vertices), k=12)
-    hit = query(torch.as_tensor(vertices, dtype=torch.float64), torch.as_tensor(points, dtype=torch.float64))
-    return hit.distance.numpy()
+    return _exact_closest(points, vertices, faces)[1].distance.numpy()
 
 
 def inside_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """:func:`surface_distance`, NaN where the nearest surface point lies on the surface's open
     boundary: the point lies beyond what the surface covers (a scan's shoulders past a head cut
     at the neck), so its distance says nothing of the fit. (M,)"""
-    query = ClosestPointQuery(faces, len(vertices), k=12)
-    hit = query(torch.as_tensor(vertices, dtype=torch.float64), torch.as_tensor(points, dtype=torch.float64))
-    opposite_open = open_edges(torch.as_tensor(faces))[hit.triangle]          # (M, 3): edge opposite corner i
+    query, hit = _exact_closest(points, vertices, faces)
+    opposite_open = query.open_edges[hit.triangle]                  # (M, 3): edge opposite corner i
     on_boundary = (opposite_open & (hit.barycentric < 1e-6)).any(dim=1)
     return np.where(on_boundary.numpy(), np.nan, hit.distance.numpy())
 

@@ -19,7 +19,8 @@ from statfit.structures.frame import UNIT_MISMATCH_FACTOR, Frame
 from statfit.registration.pose.hypotheses import DISTINCT_DEGREES
 from statfit.registration.pose.search import CLUTTER_MATCHED, estimate_pose, refine_pose
 from statfit.registration.hair import hair_points
-from statfit.core.methods import Fallback, fallback as method_fallback, landmark_weight as method_landmark_weight, resolve
+from statfit.core.methods import (Fallback, fallback as method_fallback, landmark_weight as method_landmark_weight,
+                                  resolve)
 from statfit.core.settings import FitSpace, Settings
 from statfit.model.params import project
 from statfit.model.statmodel import StatModel, face_triangles, region_triangles, scalp_triangles
@@ -300,7 +301,8 @@ class _PosedScan:
                                   region_faces=region_faces, normals=fit_normals, clutter=self.clutter)
         median = float(objective.refresh(start).distance.median())
         if objective.kept == 0:
-            raise StatfitError(f"no scan point lies closest to the region {self.region!r}: is the scan of another part?")
+            raise StatfitError(f"no scan point lies closest to the region {self.region!r}: is the scan of another "
+                               "part?")
         if warn_far and self.landmarks is None and median > FAR_DISTANCE:
             warnings.warn(f"the scan is far from the model (median distance {median * self.frame.scale:.3g}, "
                           f"{median:.2f} model radii); consider --align rigid", StatfitWarning, stacklevel=3)
@@ -328,5 +330,5 @@ class _PosedScan:
         """The RMS over the modes of the fitted shape's code in the model (standard deviations:
         :func:`statfit.model.params.project`, the least-squares coefficients of the fit in the model's
         frame)."""
-        projection = project(self.model, self.to_scan_frame(run.result.vertices), self.transform)
-        return float(np.sqrt(np.mean(projection.coefficients ** 2)))
+        in_model_frame = self.frame.from_unit(run.result.vertices.detach().cpu().double().numpy())
+        return float(np.sqrt(np.mean(project(self.model, in_model_frame).coefficients ** 2)))
