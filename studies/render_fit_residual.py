@@ -13,7 +13,6 @@ sets them against the stored errors of every other method (studies/results/cross
 """
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
@@ -24,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from study_runs import run_or_report  # noqa: E402
+from study_runs import study_main  # noqa: E402
 
 RESULTS = ROOT / "studies" / "results"
 ROWS = RESULTS / "render_fit_residual.json"
@@ -90,11 +89,8 @@ def report(rows: list[dict]) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--report", action="store_true", help="only print the table of the stored rows")
-    args = parser.parse_args()
-    runs = sorted({key[:3] for key in stored() if key[3] == "default"})
-    run_or_report(fit_case, runs, ROWS, report, args.report, key=lambda row: (row["people"], row["model"], row["seed"]))
+    study_main(__doc__, fit_case, lambda: sorted({key[:3] for key in stored() if key[3] == "default"}), ROWS, report,
+               lambda row: (row["people"], row["model"], row["seed"]))
 
 
 if __name__ == "__main__":

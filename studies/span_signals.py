@@ -33,7 +33,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from default_fallback import CROSS_FAMILY, ERROR, IN_FAMILY, stored  # noqa: E402
+from default_fallback import CROSS_FAMILY, ERROR, IN_FAMILY, row_key, stored  # noqa: E402
+import default_fallback  # noqa: E402
 from study_runs import study_main  # noqa: E402
 
 ROWS = ROOT / "studies" / "results" / "span_signals.json"
@@ -66,7 +67,6 @@ def signals(model, points: np.ndarray, result) -> dict:
 def run_case(name: str, *key) -> dict:
     """The set's own default fit (studies/default_fallback.py ``run_case``), its register call
     watched: the row keeps the case's key and adds the signals of the default's fit."""
-    import default_fallback
     import statfit.registration.job as job
     from statfit.core.methods import Fallback
     from statfit.structures.scan import Scan
@@ -91,15 +91,8 @@ def run_case(name: str, *key) -> dict:
 
 
 def runs() -> list[tuple]:
-    import default_fallback
-
+    """default_fallback's runs without §8 (its rows keep no case's fit to score)."""
     return [run for run in default_fallback.runs() if run[0] != "§8"]
-
-
-def row_key(row: dict) -> tuple:
-    import default_fallback
-
-    return default_fallback.row_key(row)
 
 
 def cases(rows: list[dict]) -> dict:
