@@ -221,7 +221,8 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
         fit = posed.fit(stages, weight, refresh_every, timer, on_record, on_snapshot, warn_far=align == "none")
         report = None
         if fallback and fit.whole_model:
-            residual, code = posed.residual(fit), posed.code(fit)
+            with timer("fallback test"):
+                residual, code = posed.residual(fit), posed.code(fit)
             report = {"method": fallback.method, "residual": residual, "threshold": fallback.residual,
                       "code": code, "code_threshold": fallback.code,
                       "used": bool(residual > fallback.residual or code > fallback.code)}
