@@ -13,7 +13,8 @@ seconds per fit; ms per iteration, from two runs of every stage cut to 50 and to
 difference over the iterations between); the set-up (the 50-iteration run less its iterations:
 pose search, factorisations, model to the device); torch ops and host waits per iteration of each
 job's loop (counted with a dispatch mode, as ``../shared/tools/sync_count.py`` counts them); and
-fits per second over a run of scans, one after another. A warm-up fit runs first (CUDA's start). With
+fits per second over a run of scans, one after another and together (``register_many``: the
+gradient stage of all stepped as one, with its ops per iteration for 8 fits). A warm-up fit runs first (CUDA's start). With
 ``--device cpu`` the same numbers on one CPU thread, for the ratio measured on the same machine.
 The ICT data must be at ../shared/data/ict-face.
 """
@@ -167,6 +168,7 @@ def main() -> None:
     from statfit.structures.normal_map import NormalMap
     from statfit.renderer.images import render_target
     from statfit.core.fit import StageTimer
+    from statfit.registration.many import register_many
 
     rows: dict[str, object] = {"device": torch.cuda.get_device_name() if device == "cuda" else "cpu (1 thread)",
                                "torch": torch.__version__}
@@ -226,6 +228,13 @@ def main() -> None:
         statfit.register(ict, points_of_one, "default", device=device)
     synchronize(device)
     rows[f"register default, {count} scans one after another: fits/s"] = count / (time.perf_counter() - start)
+    start = time.perf_counter()
+    register_many(ict, scans, "default", device=device)
+    synchronize(device)
+    rows[f"register default, {count} scans together (register_many): fits/s"] = count / (time.perf_counter() - start)
+    rows["register together, 8 fits: ops/it"], rows["register together, 8 fits: waits/it"] = per_iteration(
+        lambda it: register_many(embedded, [points] * 8, "statistical", preset="paper", align="none", device=device,
+                                 iterations=it)[0].fit.iterations)
     save(rows, args.out)
 
     for name, (make, method, preset, graphs_on, whole, overrides) in jobs.items():

@@ -13,7 +13,9 @@ one-by-one registration, its overhead per fit, and the manifest at 10,000 inputs
 (the MakeHuman body model's build time and size, `statfit render` on a 768² body map), splat (the
 surfel renderer's forward + backward at 256², a default `statfit splat` fit on 24 views), big_scans
 (`register` on 4,300 / 100,000 / 1,000,000-point ICT scans: seconds, peak memory, error), mask_pose
-(an ICT face-mask model's pose without landmarks on realistic scans in any pose and unit).
+(an ICT face-mask model's pose without landmarks on realistic scans in any pose and unit), together
+(ICT scans registered one by one and in groups stepped together by `register_many`: seconds per fit,
+error, ops per iteration).
 ``--only`` with parts of the list rewrites only those sections of an existing report (each marked
 as regenerated alone). ``--quick`` runs small sizes and few iterations (a few minutes on 2 cores): it checks that everything
 runs; its numbers are not the ones to quote. Raw numbers go to benchmarks/results/<part>[_quick].json.
@@ -33,8 +35,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import ICT_MODEL, ROOT, Section, machine, save_json  # noqa: E402
 
 PARTS = ("filter_scaling", "convergence", "peers", "end_to_end", "inpainting", "register_speed", "batch",
-         "real_scans", "bodies", "splat", "big_scans", "mask_pose")
-NEEDS_ICT = ("convergence", "peers", "end_to_end", "register_speed", "real_scans", "splat", "big_scans", "mask_pose")
+         "real_scans", "bodies", "splat", "big_scans", "mask_pose", "together")
+NEEDS_ICT = ("convergence", "peers", "end_to_end", "register_speed", "real_scans", "splat", "big_scans", "mask_pose",
+             "together")
 
 
 def run_part(name: str, quick: bool, device: str, image_dir: Path) -> Section:

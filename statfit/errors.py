@@ -11,3 +11,13 @@ class DivergenceError(StatfitError):
 
 class StatfitWarning(UserWarning):
     """Something the user should know that does not stop the fit."""
+
+
+def one_line(error: BaseException) -> str:
+    """A failure as the one line a fit that goes on without it records: a StatfitError's message, else
+    its type and the first line of its message."""
+    if isinstance(error, StatfitError):
+        return str(error)
+    if isinstance(error, MemoryError):
+        return "out of memory"
+    return f"{type(error).__name__}: {error}".splitlines()[0]

@@ -75,7 +75,7 @@ def validation_fit(model, points: np.ndarray, landmarks: np.ndarray, method: str
     quarter (:func:`validation_split`, from the mean placed by ``landmarks``): the quarter's mean
     distance to the fit (the points' units) and the fit's seconds."""
     from default_candidates import register_candidate
-    from statfit.registration.job import landmark_alignment
+    from statfit.registration.prealign import landmark_alignment
     from statfit.structures.scan import Scan
 
     held = validation_split(points, landmark_alignment(model, landmarks).apply(model.template))

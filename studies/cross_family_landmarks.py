@@ -74,7 +74,7 @@ def fit_case(people: str, model_family: str, seed: int, half: str, method: str) 
     from families import landmarked_model
     from statfit.core.threads import flush_denormals_everywhere
     from default_candidates import register_candidate
-    from statfit.registration.job import landmark_alignment
+    from statfit.registration.prealign import landmark_alignment
 
     flush_denormals_everywhere()
     data = case_data(people, seed, half)

@@ -121,7 +121,7 @@ def fit(method: str, name: str, half: str, k: int) -> dict:
     from cases import ict_model
     from statfit.geometry.metrics import surface_distance
     from statfit.model.statmodel import with_landmarks
-    from statfit.registration.job import landmark_alignment
+    from statfit.registration.prealign import landmark_alignment
     from statfit.core.threads import flush_denormals_everywhere
 
     flush_denormals_everywhere()

@@ -50,7 +50,7 @@ def _use(variant: str) -> None:
 
     model_module = importlib.import_module("statfit.model.statmodel")
     pose_module = importlib.import_module("statfit.registration.pose.search")
-    fit_module = importlib.import_module("statfit.registration.job")
+    fit_module = importlib.import_module("statfit.registration.posed")
     in_pose, in_fit, above, behind = VARIANTS[variant]
     model_module.SCALP_ABOVE, model_module.SCALP_BEHIND = above, behind
     scalp = model_module.scalp_triangles

@@ -21,3 +21,12 @@ def copy_or_misbehave(job: FitJob, source: str) -> Outcome:
     if name.startswith("bad"):
         return Outcome(None, {}, f"{name} is bad", 0.0)
     return Outcome(Path(source).read_bytes(), {"worker": os.getpid()}, None, 0.0)
+
+
+def copy_or_misbehave_together(job: FitJob, sources: list[str]) -> list[Outcome]:
+    """:func:`copy_or_misbehave` for a group of inputs fitted in one program: one that crashes or
+    hangs takes the whole group with it."""
+    for source in sources:
+        if Path(source).stem.startswith(("crash", "hang")):
+            copy_or_misbehave(job, source)
+    return [copy_or_misbehave(job, source) for source in sources]

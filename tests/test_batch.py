@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from batch_stubs import copy_or_misbehave
+from batch_stubs import copy_or_misbehave, copy_or_misbehave_together
 from conftest import run_cli
 from statfit.batch.engines import LocalPool
 from statfit.batch.fits import FitJob
@@ -96,6 +96,51 @@ def test_crashing_and_hanging_fits_fail_alone_and_the_batch_goes_on(tmp_path):
     for name in ("ok1", "ok2", "ok3", "ok4"):
         assert (tmp_path / "out" / f"{name}.ply").read_bytes() == name.encode()
     assert not (tmp_path / "out" / "crash.ply").exists()
+
+
+def test_a_group_that_crashes_or_hangs_is_rerun_an_input_at_a_time(tmp_path):
+    names = ["ok1", "crash", "ok2", "hang", "bad", "ok3", "ok4", "ok5"]
+    for name in names:
+        (tmp_path / f"{name}.ply").write_bytes(name.encode())
+    items = plan_outputs(expand_inputs([str(tmp_path / "*.ply")]), tmp_path / "out")
+    (tmp_path / "out").mkdir()
+    job = FitJob("register", None, None, resolve("none"), together=3)
+    engine = LocalPool(2)
+    try:
+        report = run_batch(items, job, tmp_path / "out", engine, timeout=4, work=copy_or_misbehave,
+                           group_work=copy_or_misbehave_together)
+    finally:
+        engine.close()
+    failed = dict((Path(source).stem, reason) for source, reason in report.failed)
+    assert failed == {"crash": WORKER_DIED, "hang": "timed out after 4 s", "bad": "bad is bad"}
+    assert report.done == 5
+    for name in ("ok1", "ok2", "ok3", "ok4", "ok5"):
+        assert (tmp_path / "out" / f"{name}.ply").read_bytes() == name.encode()
+
+
+def test_scans_registered_together_fit_as_one_by_one(scans, tmp_path):
+    """``--together``: each worker registers 4 scans in one program (two corrupt ones fail alone);
+    each fit is as close to its scan as the one-by-one fit, and the settings say how it was made."""
+    import trimesh
+
+    from statfit.geometry.metrics import inside_distance
+
+    together, alone = tmp_path / "together", tmp_path / "alone"
+    for out, extra in ((together, ["--together", "4"]), (alone, [])):
+        code, err = run_cli(["batch", "register", str(scans / "**" / "*.ply"), "--out-dir", str(out), "--workers",
+                             "2", "--seed", "3", "-q", *FAST, *extra])
+        assert code == 1, err
+        rows = fit_rows(out)
+        assert sorted(Path(r["input"]).name for r in rows if r["status"] == "failed") == ["broken.ply", "empty.ply"]
+    run = next(row for row in read_rows(together / MANIFEST_NAME) if row["event"] == "run")
+    assert run["settings"]["together"] == 4
+    for path in sorted(alone.rglob("scan*.ply")):
+        scan = trimesh.load(scans / path.relative_to(alone), process=False).vertices
+        distance = {}
+        for out in (together, alone):
+            fitted = trimesh.load(out / path.relative_to(alone), process=False)
+            distance[out] = float(np.nanmean(inside_distance(scan, fitted.vertices, fitted.faces)))
+        assert distance[together] <= 1.25 * distance[alone], (path.name, distance)
 
 
 def test_a_pool_starts_its_workers_at_its_first_fit_and_before_handing_it_over():

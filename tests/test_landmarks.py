@@ -10,7 +10,7 @@ from statfit.geometry.align import Similarity
 from statfit.errors import StatfitError
 from statfit.io.landmarks import MAX_LANDMARK_BYTES, read_landmarks
 from statfit.objectives.landmarks import LandmarkObjective
-from statfit.registration.job import landmark_alignment
+from statfit.registration.prealign import landmark_alignment
 from scipy.spatial.transform import Rotation
 
 

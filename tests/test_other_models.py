@@ -149,7 +149,7 @@ def test_the_pose_of_an_ict_face_mask_is_found(ict_mask):
 def test_an_unforeseen_fault_inside_a_fit_is_one_line(tmp_path, monkeypatch):
     """Whatever breaks inside a fit (here: a planted fault) ends as one line on stderr, exit 2,
     nothing written — never a traceback."""
-    import statfit.registration.job as job
+    import statfit.registration.prealign as prealign_module
 
     code, _ = run_cli(["synth", "scan", "--seed", "1", "--out", str(tmp_path / "scan.ply")])
     assert code == 0
@@ -157,7 +157,7 @@ def test_an_unforeseen_fault_inside_a_fit_is_one_line(tmp_path, monkeypatch):
     def broken(*args, **kwargs):
         raise ValueError("'x' must be finite\nsecond line")
 
-    monkeypatch.setattr(job, "estimate_pose", broken)
+    monkeypatch.setattr(prealign_module, "estimate_pose", broken)
     code, out = run_cli(["register", str(tmp_path / "scan.ply"), "--out", str(tmp_path / "fit.ply")])
     lines = [line for line in out.splitlines() if line.startswith("statfit: error")]
     assert code == 2 and len(lines) == 1 and "ValueError: 'x' must be finite" in lines[0], out
@@ -212,7 +212,8 @@ def test_the_fit_starts_from_the_shape_the_pose_search_fitted(embedded_model):
     """A person whose head the model's first mode moved two radii: the pose search finds the pose
     together with every coefficient; the fit's first iterate is that shape (mean + Σ c std U), not
     the mean, which lies wherever the pose put it."""
-    from statfit.registration.job import prealign, register
+    from statfit.registration.job import register
+    from statfit.registration.prealign import prealign
 
     model = _with_a_moving_head(embedded_model, 1.0)
     rng = np.random.default_rng(4)
@@ -256,7 +257,7 @@ def test_a_closed_form_first_stage_starts_from_the_mean_unless_the_mean_lies_far
     from statfit.core.methods import resolve
     from statfit.core.settings import FitSpace
     from statfit.geometry.closest import ClosestPointQuery
-    from statfit.registration.job import FAR_DISTANCE, fit_start
+    from statfit.registration.posed import FAR_DISTANCE, fit_start
 
     space = FitSpace.of(embedded_model)
     query = ClosestPointQuery(embedded_model.faces, embedded_model.num_vertices, k=2)

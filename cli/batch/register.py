@@ -10,7 +10,8 @@ from statfit.core.device import resolve_device
 from statfit.core.methods import fallback as method_fallback, resolve
 from statfit.errors import StatfitError
 from statfit.model.statmodel import region_vertices
-from statfit.registration.job import ALIGNMENTS
+from statfit.registration.prealign import ALIGNMENTS
+from statfit.registration.many import together_for
 from statfit_cli.batch.options import (BatchThreadsOption, ClusterOption, ForceOption, InputsArgument, JsonOption,
                                        OutDirOption, SchedulerOption, TimeoutOption, WorkersOption)
 from statfit_cli.batch.running import check_engine, model_identity, prepared_inputs, run_fits
@@ -45,6 +46,11 @@ def batch_register(
     clutter: str = ClutterOption,
     device: str = DeviceOption,
     threads: int = BatchThreadsOption,
+    together: int = typer.Option(None, "--together", help="Scans each worker registers in one program: each "
+                                 "its own pose and closed-form stage, their gradient stages stepped together (one "
+                                 "launch per op for all). Default: 1 on a CPU; on a GPU as many as fit in a quarter "
+                                 "of its free memory, at most 64. Not the same bytes as one at a time (docs/batch.md).",
+                                 show_default=False, callback=within(1, 4096)),
     seed: int = SeedOption,
     iterations: int = IterationsOption,
     lr: float = LrOption,
@@ -66,6 +72,7 @@ def batch_register(
         statfit batch register 'scans/**/*.ply' --model model.npz --out-dir fits/ --workers 2
         statfit batch register 'scans/**/*.ply' --model model.npz --out-dir fits/ --scheduler tcp://head:8786
         statfit batch register 'scans/*.ply' --out-dir fits/ --params    # fits/<scan>.params.json too
+        statfit batch register 'scans/*.ply' --out-dir fits/ --device cuda --workers 4   # 4 × 64 scans at once
         statfit batch status fits/
     """
     check_engine(scheduler, cluster)
@@ -78,8 +85,9 @@ def batch_register(
     if region is not None:
         region_vertices(model, region)
     items = prepared_inputs(inputs, out_dir)
+    fit_device = resolve_device(device, "register")
     job = FitJob("register", model_file, k, stages, dict(align=align, region=region, refresh_every=refresh,
                                                          trim=trim, seed=seed, clutter=clutter_choice(clutter)),
-                 fallback=refit, threads=threads, device=str(resolve_device(device, "register")), model_digest=digest,
-                 params=params)
+                 fallback=refit, threads=threads, device=str(fit_device), model_digest=digest, params=params,
+                 together=together or together_for(model, fit_device))
     run_fits(items, job, out_dir, workers, scheduler, cluster, timeout, force, quiet, json_out)

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from statfit import __version__
-from statfit.errors import StatfitError
+from statfit.errors import StatfitError, one_line
 from statfit.model.importers.cache import open_model
 from statfit.render.job import reconstruct
 from statfit.io.mesh import load_scan, mesh_bytes
@@ -22,7 +22,10 @@ from statfit.model.statmodel import StatModel
 from statfit.geometry.support import scan_support, view_support
 from statfit.model.params import project, vertex_fields
 from statfit.model.params_file import params_bytes
+from statfit.core.stages import Fit
 from statfit.registration.job import register
+from statfit.registration.many import ScanFit, register_many
+from statfit.structures.scan import Scan
 from statfit.core.methods import Fallback
 from statfit.core.settings import Settings
 from statfit.core.threads import flush_denormals_everywhere, limit_threads
@@ -51,13 +54,15 @@ class FitJob:
     model_digest: str = ""
     params: bool = False
     fallback: Fallback | None = None
+    together: int = 1
 
     def settings(self) -> dict[str, Any]:
         """Everything that decides an output, as plain JSON (the manifest's settings key)."""
         return dict(command=self.command, model=self.model, model_digest=self.model_digest, k=self.k, stages=[s.describe() for s in self.stages],
                     options=self.options, device=self.device, statfit=__version__,
                     **({"params": True} if self.params else {}),
-                    **({"fallback": asdict(self.fallback)} if self.fallback else {}))
+                    **({"fallback": asdict(self.fallback)} if self.fallback else {}),
+                    **({"together": self.together} if self.together > 1 else {}))
 
 
 @dataclass
@@ -113,11 +118,8 @@ def _fit(job: FitJob, source: str, model: StatModel) -> tuple[bytes, dict[str, A
     common = dict(stages=job.stages, device=job.device, threads=job.threads)
     if job.command == "register":
         scan = load_scan(source, job.options.get("seed", 0))
-        result = register(model, scan, **common, **job.options, fallback=job.fallback)
-        pose = {"model_to_scan": result.transform.as_matrix().tolist(), "pose": result.pose,
-                "fallback": result.fallback}
-        support = scan_support(result.vertices, scan.points)
-    elif job.command == "render":
+        return _registered(job, model, scan, register(model, scan, **common, **job.options, fallback=job.fallback))
+    if job.command == "render":
         options = dict(job.options)
         camera_path = options.pop("camera", None)
         normal_map = read_normal_map(source)
@@ -125,8 +127,18 @@ def _fit(job: FitJob, source: str, model: StatModel) -> tuple[bytes, dict[str, A
         result = reconstruct(model, normal_map, camera, **common, **options)
         pose = {"model_to_world": result.transform.as_matrix().tolist()}
         support = view_support(result.vertices, model.faces, [(camera, normal_map.mask)])
-    else:
-        raise StatfitError(f"unknown batch command {job.command!r}; choose one of {', '.join(COMMANDS)}")
+        return _output(job, model, result, pose, support)
+    raise StatfitError(f"unknown batch command {job.command!r}; choose one of {', '.join(COMMANDS)}")
+
+
+def _registered(job: FitJob, model: StatModel, scan: Scan, result: Fit) -> tuple[bytes, dict[str, Any], dict[str, bytes]]:
+    pose = {"model_to_scan": result.transform.as_matrix().tolist(), "pose": result.pose, "fallback": result.fallback}
+    return _output(job, model, result, pose, scan_support(result.vertices, scan.points))
+
+
+def _output(job: FitJob, model: StatModel, result: Fit, pose: dict[str, Any], support: tuple
+            ) -> tuple[bytes, dict[str, Any], dict[str, bytes]]:
+    """The fit's mesh (with its per-vertex fields), its summary and the files beside it."""
     summary = dict(iterations=result.iterations, final_loss=result.loss, fit_seconds=result.seconds, **pose)
     projection = project(model, result.vertices, result.transform, (result.pose or {}).get("units_factor"))
     extras = {PARAMS_SUFFIX: params_bytes(model, projection, "fit" + PARAMS_SUFFIX)} if job.params else {}
@@ -139,15 +151,50 @@ def run_job(job: FitJob, source: str) -> Outcome:
     prepare_worker(job.max_threads)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        try:
-            data, summary, extras = _fit(job, source, _model(job.model, job.k))
-            error = None
-        except StatfitError as exc:
-            data, summary, extras, error = None, {}, {}, str(exc)
-        except MemoryError:
-            data, summary, extras, error = None, {}, {}, "out of memory"
-        except Exception as exc:  # a bug or an unforeseen input: recorded, the batch goes on
-            data, summary, extras, error = None, {}, {}, f"{type(exc).__name__}: {exc}".splitlines()[0]
+        outcome = _guarded(lambda: _fit(job, source, _model(job.model, job.k)))
     if caught:
-        summary["warnings"] = [str(w.message) for w in caught]
-    return Outcome(data, summary, error, time.perf_counter() - started, extras)
+        outcome.summary["warnings"] = [str(w.message) for w in caught]
+    outcome.seconds = time.perf_counter() - started
+    return outcome
+
+
+def run_group(job: FitJob, sources: list[str]) -> list[Outcome]:
+    """Register ``sources`` together (:func:`statfit.registration.many.register_many`): one
+    outcome per source, in order, each with its own error or fit, warnings and seconds (its own
+    reading, pose search and closed-form stage; its share of the stages stepped together)."""
+    prepare_worker(job.max_threads)
+    outcomes: dict[int, Outcome] = {}
+    scans: dict[int, Scan] = {}
+    for index, source in enumerate(sources):
+        try:
+            scans[index] = load_scan(source, job.options.get("seed", 0))
+        except Exception as exc:  # noqa: BLE001 - this input's one line, the others go on
+            outcomes[index] = Outcome(None, {}, one_line(exc), 0.0)
+    order = sorted(scans)
+    try:
+        if job.command != "register":
+            raise StatfitError(f"only register fits several inputs together, not {job.command}")
+        model = _model(job.model, job.k)
+        together = register_many(model, [scans[i] for i in order], stages=job.stages, device=job.device,
+                                 threads=job.threads, fallback=job.fallback, **job.options)
+    except Exception as exc:  # noqa: BLE001 - a bad model or a bug: every fit of the group says so
+        together = [ScanFit(error=one_line(exc)) for _ in order]
+    for index, fitted in zip(order, together):
+        if fitted.fit is None:
+            outcome = Outcome(None, {}, fitted.error, 0.0)
+        else:
+            outcome = _guarded(lambda: _registered(job, model, scans[index], fitted.fit))
+            outcome.seconds = fitted.fit.seconds
+        if fitted.warnings:
+            outcome.summary["warnings"] = fitted.warnings
+        outcomes[index] = outcome
+    return [outcomes[index] for index in range(len(sources))]
+
+
+def _guarded(work) -> Outcome:
+    """``work()`` → (data, summary, extras) as an outcome, or its failure as the outcome's one-line error."""
+    try:
+        data, summary, extras = work()
+        return Outcome(data, summary, None, 0.0, extras)
+    except Exception as exc:  # noqa: BLE001 - a bug or an unforeseen input: recorded, the batch goes on
+        return Outcome(None, {}, one_line(exc), 0.0)

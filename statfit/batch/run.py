@@ -4,6 +4,8 @@ finishes — output first (atomically), then its manifest line.
 Failures stay with their input: a bad input is a ``failed`` line with the fit's one-line error; a
 fit running past ``timeout`` is failed and its worker replaced; when a worker dies, the fits it may
 have taken down are rerun one at a time, so only the one that kills its worker alone is failed.
+With ``job.together`` > 1 a worker registers that many inputs in one program (``group_work``); a
+group that kills its worker or runs past ``timeout`` × its size is rerun an input at a time.
 """
 from __future__ import annotations
 
@@ -15,7 +17,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from statfit.batch.engines import Engine, WorkerLost
-from statfit.batch.fits import FitJob, Outcome, run_job
+from statfit.batch.fits import FitJob, Outcome, run_group, run_job
 from statfit.batch.manifest import MANIFEST_NAME, Manifest, is_current, latest_fits, read_rows, settings_key
 from statfit.batch.plan import Item, file_digest
 from statfit.errors import StatfitError
@@ -96,12 +98,13 @@ def plan_work(items: list[Item], out_dir: Path, key: str, force: bool
 
 def run_batch(items: list[Item], job: FitJob, out_dir: Path, engine: Engine, *, force: bool = False,
               timeout: float | None = None, work: Callable[[FitJob, str], Outcome] = run_job,
+              group_work: Callable[[FitJob, list[str]], list[Outcome]] = run_group,
               on_start: Callable[[int, int], None] | None = None,
               on_row: Callable[[dict[str, Any]], None] | None = None) -> BatchReport:
     """Fit every item not already done with ``job``'s settings (all with ``force``) on ``engine``,
     recording each in ``out_dir``'s manifest. ``on_start(to_fit, skipped)`` is called once the plan
     is known, ``on_row(row)`` after every manifest line. ``work(job, source)`` replaces the fit
-    (benchmarks of the bookkeeping). KeyboardInterrupt stops the engine and propagates; what was
+    (benchmarks of the bookkeeping), ``group_work(job, sources)`` the fit of ``job.together`` inputs. KeyboardInterrupt stops the engine and propagates; what was
     recorded stays."""
     started = time.perf_counter()
     key = settings_key(job.settings())
@@ -117,48 +120,57 @@ def run_batch(items: list[Item], job: FitJob, out_dir: Path, engine: Engine, *, 
         recorder = _Recorder(manifest, out_dir, key, report, on_row)
         for item, reason in unreadable:
             recorder.record(item, None, Outcome(None, {}, reason, 0.0))
-        _drive(todo, job, engine, work, timeout, recorder)
+        _drive(todo, job, engine, work, group_work, timeout, recorder)
     report.wall_seconds = time.perf_counter() - started
     return report
 
 
-def _drive(todo: list[tuple[Item, str | None]], job: FitJob, engine: Engine, work: Callable,
+def _drive(todo: list[tuple[Item, str | None]], job: FitJob, engine: Engine, work: Callable, group_work: Callable,
            timeout: float | None, recorder: _Recorder) -> None:
-    queue = deque(todo)
+    size = max(1, job.together)
+    queue = deque(todo[i:i + size] for i in range(0, len(todo), size))     # groups of inputs
     suspects: deque[tuple[Item, str | None]] = deque()  # in flight when a worker died: rerun alone
-    running: dict[Any, list] = {}  # future → [item, digest, alone]; submission order = start order
+    running: dict[Any, list] = {}  # future → [group, alone]; submission order = start order
     started: dict[Any, float] = {}  # the futures a worker has taken (the oldest ``engine.workers``), since when
 
-    def submit(entry: tuple[Item, str | None], alone: bool) -> None:
-        running[engine.submit(work, job, str(entry[0].source))] = [*entry, alone]
+    def submit(group: list[tuple[Item, str | None]], alone: bool) -> None:
+        sources = [str(item.source) for item, _ in group]
+        future = engine.submit(work, job, sources[0]) if len(group) == 1 else engine.submit(group_work, job, sources)
+        running[future] = [group, alone]
 
     while queue or suspects or running:
         if suspects and not running:
-            submit(suspects.popleft(), alone=True)
+            submit([suspects.popleft()], alone=True)
         while queue and not suspects and len(running) < engine.capacity:
             submit(queue.popleft(), alone=False)
         for future in list(running)[:engine.workers]:
             started.setdefault(future, time.monotonic())
         for future in engine.wait(running, POLL_SECONDS):
-            item, digest, alone = running.pop(future)
+            group, alone = running.pop(future)
             started.pop(future, None)
             try:
-                recorder.record(item, digest, engine.result(future))
+                result = engine.result(future)
             except WorkerLost:
                 if alone:
-                    recorder.record(item, digest, Outcome(None, {}, WORKER_DIED, 0.0))
+                    recorder.record(*group[0], Outcome(None, {}, WORKER_DIED, 0.0))
                 else:
-                    suspects.append((item, digest))
+                    suspects.extend(group)
+                continue
+            for (item, digest), outcome in zip(group, result if isinstance(result, list) else [result]):
+                recorder.record(item, digest, outcome)
         if timeout is not None:
             now = time.monotonic()
-            hung = [f for f, start in started.items() if now - start > timeout]
+            hung = [f for f, start in started.items() if now - start > timeout * len(running[f][0])]
             if hung:
                 stopped = engine.replace(hung, list(running))
                 for future in hung:
-                    item, digest, _ = running.pop(future)
-                    recorder.record(item, digest, Outcome(None, {}, f"timed out after {timeout:g} s",
-                                                          now - started.pop(future)))
+                    group, _ = running.pop(future)
+                    seconds = now - started.pop(future)
+                    if len(group) > 1:       # which of them hangs: each alone, with its own limit
+                        suspects.extend(group)
+                    else:
+                        recorder.record(*group[0], Outcome(None, {}, f"timed out after {timeout:g} s", seconds))
                 for future in reversed(stopped):  # stopped with the hung one's worker: rerun first, not blamed
-                    item, digest, _ = running.pop(future)
+                    group, _ = running.pop(future)
                     started.pop(future, None)
-                    queue.appendleft((item, digest))
+                    queue.appendleft(group)

@@ -1,4 +1,6 @@
-"""Gradient filters: symmetric linear maps F applied to (N, 3) tensors, ``F(g)``.
+"""Gradient filters: symmetric linear maps F applied to (N, 3) tensors, ``F(g)``, or to (B, N, 3):
+B independent fits of one mesh filtered at once (each fit's (N, 3) block by F; the model's basis is
+streamed once for all B, and the Laplacian solves 3B columns in one call).
 
 - identity:     F = I
 - laplacian:    F = (I + λL)⁻¹                              (Nicolet et al. 2021)
@@ -92,7 +94,11 @@ class LaplacianFilter:
         return self._solver.capturable
 
     def __call__(self, g: torch.Tensor) -> torch.Tensor:
-        return self._solver.solve(g)
+        if g.dim() == 2:
+            return self._solver.solve(g)
+        fits, n, c = g.shape                                   # the fits' columns side by side: (N, 3B)
+        columns = g.permute(1, 0, 2).reshape(n, fits * c)
+        return self._solver.solve(columns).view(n, fits, c).permute(1, 0, 2)
 
 
 class StatisticalFilter:
@@ -115,6 +121,10 @@ class StatisticalFilter:
         self._gain_minus_off = gain - self.off_gain
 
     def __call__(self, g: torch.Tensor) -> torch.Tensor:
+        if g.dim() == 3:
+            flat = g.reshape(len(g), -1)                                                     # (B, 3N)
+            coeff = flat.mm(self._basis).mul_(self._gain_minus_off)                          # (B, K)
+            return torch.addmm(flat, coeff, self.basis_t, beta=self.off_gain).view_as(g)
         flat = g.reshape(-1)
         coeff = project(self.basis_t, flat).mul_(self._gain_minus_off)
         return expand(self.basis_t, coeff, flat, self.off_gain, self._basis).view_as(g)
@@ -136,6 +146,11 @@ class HybridFilter:
         self.capturable = laplacian_filter.capturable
 
     def __call__(self, g: torch.Tensor) -> torch.Tensor:
+        if g.dim() == 3:
+            flat = g.reshape(len(g), -1)                                                     # (B, 3N)
+            coeff = flat.mm(self._basis).mul_(self._gain)                                    # (B, K)
+            smooth = self._smooth(g).reshape(len(g), -1)
+            return torch.addmm(smooth, coeff, self.basis_t, beta=self.off_gain).view_as(g)
         flat = g.reshape(-1)
         coeff = project(self.basis_t, flat).mul_(self._gain)
         smooth = self._smooth(g).reshape(-1)

@@ -53,10 +53,11 @@ class Method:
 
 
 def filtered_method(make_filter: Callable[[Settings, FitSpace, torch.Tensor], Filter]) -> Builder:
-    """The builder of a filtered method, ``x = x0 + F u`` with UniformAdam on u."""
+    """The builder of a filtered method, ``x = x0 + F u`` with UniformAdam on u; ``x0`` (N, 3), or
+    (B, N, 3) for B fits at once (each with its own step scale)."""
     def build(settings: Settings, space: FitSpace, x0: torch.Tensor):
-        param = FilteredVertices(x0, make_filter(settings, space, x0))
-        return param, UniformAdam(param.parameters(), lr=settings.lr, betas=settings.adam_betas)
+        param = FilteredVertices(x0, make_filter(settings, space, x0[0] if x0.dim() == 3 else x0))
+        return param, UniformAdam(param.parameters(), lr=settings.lr, betas=settings.adam_betas, fits=x0.dim() == 3)
 
     return build
 
@@ -308,8 +309,20 @@ def _split_iterations(stages: tuple[Settings, ...], total: int) -> tuple[Setting
     return head + (replace(stages[-1], iterations=max(1, total - spent)),)
 
 
+# The methods whose stage takes B fits at once (``build`` with x0 (B, N, 3)): the filtered ones.
+BATCHED_METHODS = ("statistical", "hybrid", "laplacian", "none")
+
+
+def batchable(settings: Settings) -> bool:
+    """Whether a stage of ``settings`` can step B fits of one model at once: a gradient stage of a
+    filtered method whose Laplacian, if it has one, is the topology's alone (uniform)."""
+    return (settings.optimizer != "gauss-newton" and settings.method in BATCHED_METHODS
+            and (settings.method in ("statistical", "none") or settings.laplacian == "uniform"))
+
+
 def build(settings: Settings, space: FitSpace, x0: torch.Tensor) -> tuple[Parametrization, torch.optim.Optimizer]:
-    """Parametrisation and optimiser for one stage, starting from vertices ``x0`` (N, 3)."""
+    """Parametrisation and optimiser for one stage, starting from vertices ``x0`` (N, 3) (or (B, N, 3):
+    B fits at once, for a :func:`batchable` stage)."""
     load_plugins()
     if settings.method not in METHODS:
         raise StatfitError(f"unknown method {settings.method!r}; choose one of {', '.join(METHODS)}")

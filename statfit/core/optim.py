@@ -13,11 +13,13 @@ class UniformAdam(torch.optim.Optimizer):
     """``p -= lr * m̂ / (eps + sqrt(max(v̂)))`` with Adam's moment estimates m̂, v̂.
 
     ``capturable``: the step count t is a tensor on the parameter's device and the bias corrections
-    are computed there (a few more, tiny ops; no value of t is baked into the launched kernels)."""
+    are computed there (a few more, tiny ops; no value of t is baked into the launched kernels).
+    ``fits``: a parameter's first dimension indexes independent fits (B, ...): each takes its own
+    largest second moment, so each steps as it would alone."""
 
     def __init__(self, params, lr: float = 0.01, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8,
-                 capturable: bool = False):
-        super().__init__(params, dict(lr=lr, betas=betas, eps=eps, capturable=capturable))
+                 capturable: bool = False, fits: bool = False):
+        super().__init__(params, dict(lr=lr, betas=betas, eps=eps, capturable=capturable, fits=fits))
 
     @torch.no_grad()
     def step(self, closure=None):
@@ -34,14 +36,15 @@ class UniformAdam(torch.optim.Optimizer):
                 m, v = state["m"], state["v"]
                 m.mul_(b1).add_(p.grad, alpha=1 - b1)
                 v.mul_(b2).addcmul_(p.grad, p.grad, value=1 - b2)
+                largest = v.flatten(1).amax(dim=1).view(-1, *(1,) * (p.dim() - 1)) if group["fits"] else v.max()
                 if group["capturable"]:
                     t = _step_tensor(state, p).add_(1)
-                    denom = (v.max() / (1 - b2 ** t)).sqrt_().add_(group["eps"])
+                    denom = (largest / (1 - b2 ** t)).sqrt_().add_(group["eps"])
                     p.sub_(m.mul(group["lr"] / (1 - b1 ** t)).div_(denom))
                     continue
                 state["step"] += 1
                 t = state["step"]
-                denom = (v.max() / (1 - b2**t)).sqrt_().add_(group["eps"])
+                denom = (largest / (1 - b2**t)).sqrt_().add_(group["eps"])
                 p.sub_(m / denom, alpha=group["lr"] / (1 - b1**t))
 
 

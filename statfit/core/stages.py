@@ -53,11 +53,12 @@ class PipelineResult:
 
 def run_stages(stages: tuple[Settings, ...], space: FitSpace, objective: Objective, x0: torch.Tensor, *,
                on_record: Progress | None = None, on_snapshot: Snapshot | None = None,
-               timer: StageTimer | None = None) -> PipelineResult:
+               timer: StageTimer | None = None, first_iteration: int = 0) -> PipelineResult:
     """Run ``stages`` in order from vertices ``x0`` (N, 3); the objective's correspondences are
-    renewed at the start of every stage."""
+    renewed at the start of every stage. ``first_iteration``: the number of the first (a pipeline
+    run a stage at a time, by :mod:`statfit.registration.many`, counts on)."""
     timer = timer or StageTimer()
-    x, done, loss = x0, 0, {}
+    x, done, loss = x0, first_iteration, {}
     for settings in stages:
         objective.reset()
         stage_objective = _for_stage(objective, settings)
@@ -74,7 +75,7 @@ def run_stages(stages: tuple[Settings, ...], space: FitSpace, objective: Objecti
             result = run_fit(param, optimizer, stage_objective, settings.iterations, on_record=on_record, timer=timer,
                              first_iteration=done, on_snapshot=on_snapshot)
         x, done, loss = result.vertices, done + result.iterations, result.loss
-    return PipelineResult(x, loss, done)
+    return PipelineResult(x, loss, done - first_iteration)
 
 
 def _for_stage(objective: Objective, settings: Settings) -> Objective:

@@ -102,12 +102,13 @@ class ClosestPointQuery:
     (F, 3) marks the topology's border edges (:func:`open_edges`)."""
 
     def __init__(self, faces: np.ndarray, num_vertices: int, k: int = 4, device: str | torch.device = "cpu"):
-        self.k = k
+        self.k, self.num_vertices = k, num_vertices
         self.faces = torch.as_tensor(np.asarray(faces, dtype=np.int64), device=device)
         self.open_edges = open_edges(self.faces)
         # on the host: the candidates are listed where the KD-tree query runs
         self._ring, self._ring_first, self._ring_count = vertex_triangle_lists(faces, num_vertices)
         self._faces_flat = self.faces.reshape(-1)
+        self._stacked: torch.Tensor | None = None   # B copies of the faces, for :meth:`many`
 
     def _candidates(self, nearest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The triangles around each point's nearest vertices ``nearest`` (M, k), one flat list (L,)
@@ -126,35 +127,66 @@ class ClosestPointQuery:
         queried again and again: no copy each time). Raises DivergenceError for non-finite vertices."""
         with torch.no_grad():
             vertices = vertices.detach() if vertices.requires_grad else vertices
-            host = vertices.cpu().double().numpy()
-            if not np.isfinite(host).all():
-                raise DivergenceError("the fit diverged: vertices are not finite (step size too large?)")
-            tree = cKDTree(host, balanced_tree=False)   # built per query: 1.7x faster to build
             if host_points is None:
                 host_points = (points.detach() if points.requires_grad else points).cpu().double().numpy()
-            _, nearest = tree.query(host_points, k=self.k)
-            count = len(points)
-            candidates, owner = (torch.as_tensor(a, device=points.device) for a in self._candidates(nearest))
-            total = len(candidates)
-            lane = torch.arange(total, device=points.device)
-            corners = vertices.index_select(0, self._faces_flat).view(-1, 3, 3)      # (F, corner, xyz)
-            ab, ac = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
-            products = torch.stack([(ab * ab).sum(-1), (ab * ac).sum(-1), (ac * ac).sum(-1)])   # (3, F)
-            # one plane per quantity (12, F), so that every product below runs over contiguous memory
-            per_triangle = torch.cat([corners[:, 0].T, ab.T, ac.T, products])
-            gathered = per_triangle.index_select(1, candidates)                               # (12, L)
-            offset = points.T.index_select(1, owner) - gathered[0:3]                         # (3, L)
-            # ap·ab, ap·ac, ap·ap at once: (edge b, edge c, offset) · offset, summed over xyz in order
-            dots = (torch.cat([gathered[3:9].view(2, 3, -1), offset[None]]) * offset).sum(1)
-            v, w, sq = _closest_in_triangle_vw(*dots, *gathered[9:12])
-            # Per point, the first of its nearest candidates (as argmin over a row of them).
-            nearest_sq = sq.new_full((count,), torch.inf).scatter_reduce_(0, owner, sq, "amin")
-            first = torch.where(sq == nearest_sq.index_select(0, owner), lane, total)
-            best = lane.new_full((count,), total).scatter_reduce_(0, owner, first, "amin")    # (M,)
-            triangle = candidates.index_select(0, best)
-            # the winner's corner and edges (9 planes) and its (v, w), in one gather: (11, M)
-            picked = torch.cat([gathered[:9], v[None], w[None]]).index_select(1, best)
-            corner, edge_b, edge_c, (v, w) = picked[0:3], picked[3:6], picked[6:9], picked[9:11]
-            bary = torch.stack([1 - v - w, v, w], dim=-1)
-            surface = (corner + v * edge_b + w * edge_c).T
-            return SurfacePoints(triangle, bary, (surface - points).norm(dim=-1))
+            candidates, owner = self._host_candidates(vertices.cpu().double().numpy(), host_points)
+            return self._solve(vertices, self._faces_flat, points, *(torch.as_tensor(a, device=points.device)
+                                                                     for a in (candidates, owner)))
+
+    def many(self, vertices: torch.Tensor, points: torch.Tensor, host_points: np.ndarray) -> SurfacePoints:
+        """Closest points for B meshes of this topology at once: ``vertices`` (B, N, 3), ``points``
+        (B, M, 3) (``host_points`` the same as float64 NumPy), each fit's points on its own mesh.
+        Triangle ids (B·M,) count the B meshes' triangles one after another (mesh b's: b·F + t);
+        barycentrics (B·M, 3), distances (B·M,). One read of the vertices from the device; a tree
+        per mesh on the host; the candidates of all B solved together."""
+        with torch.no_grad():
+            vertices = vertices.detach() if vertices.requires_grad else vertices
+            fits, count = points.shape[:2]
+            host = vertices.cpu().double().numpy()
+            triangles = len(self.faces)
+            listed = [self._host_candidates(host[b], host_points[b]) for b in range(fits)]
+            candidates = np.concatenate([c + b * triangles for b, (c, _) in enumerate(listed)])
+            owner = np.concatenate([o + b * count for b, (_, o) in enumerate(listed)])
+            if self._stacked is None or len(self._stacked) != 3 * triangles * fits:
+                shift = torch.arange(fits, device=self.faces.device).mul_(vertices.shape[1])
+                self._stacked = (self._faces_flat[None] + shift[:, None]).reshape(-1)
+            return self._solve(vertices.reshape(-1, 3), self._stacked, points.reshape(-1, 3),
+                               *(torch.as_tensor(a, device=points.device) for a in (candidates, owner)))
+
+    def _host_candidates(self, host: np.ndarray, host_points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The candidate triangles of each point and each one's point, on the host (a KD-tree of
+        the vertices ``host`` (N, 3), float64)."""
+        if not np.isfinite(host).all():
+            raise DivergenceError("the fit diverged: vertices are not finite (step size too large?)")
+        tree = cKDTree(host, balanced_tree=False)   # built per query: 1.7x faster to build
+        _, nearest = tree.query(host_points, k=self.k)
+        return self._candidates(nearest)
+
+    @staticmethod
+    def _solve(vertices: torch.Tensor, faces_flat: torch.Tensor, points: torch.Tensor, candidates: torch.Tensor,
+               owner: torch.Tensor) -> SurfacePoints:
+        """Each point's nearest among its ``candidates`` (L,) triangles (rows of ``faces_flat``
+        (3F,) viewed (F, 3)) of ``vertices`` (N, 3); ``owner`` (L,): each candidate's point."""
+        count, total = len(points), len(candidates)
+        lane = torch.arange(total, device=points.device)
+        corners = vertices.index_select(0, faces_flat).view(-1, 3, 3)                # (F, corner, xyz)
+        ab, ac = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+        products = torch.stack([(ab * ab).sum(-1), (ab * ac).sum(-1), (ac * ac).sum(-1)])   # (3, F)
+        # one plane per quantity (12, F), so that every product below runs over contiguous memory
+        per_triangle = torch.cat([corners[:, 0].T, ab.T, ac.T, products])
+        gathered = per_triangle.index_select(1, candidates)                               # (12, L)
+        offset = points.T.index_select(1, owner) - gathered[0:3]                         # (3, L)
+        # ap·ab, ap·ac, ap·ap at once: (edge b, edge c, offset) · offset, summed over xyz in order
+        dots = (torch.cat([gathered[3:9].view(2, 3, -1), offset[None]]) * offset).sum(1)
+        v, w, sq = _closest_in_triangle_vw(*dots, *gathered[9:12])
+        # Per point, the first of its nearest candidates (as argmin over a row of them).
+        nearest_sq = sq.new_full((count,), torch.inf).scatter_reduce_(0, owner, sq, "amin")
+        first = torch.where(sq == nearest_sq.index_select(0, owner), lane, total)
+        best = lane.new_full((count,), total).scatter_reduce_(0, owner, first, "amin")    # (M,)
+        triangle = candidates.index_select(0, best)
+        # the winner's corner and edges (9 planes) and its (v, w), in one gather: (11, M)
+        picked = torch.cat([gathered[:9], v[None], w[None]]).index_select(1, best)
+        corner, edge_b, edge_c, (v, w) = picked[0:3], picked[3:6], picked[6:9], picked[9:11]
+        bary = torch.stack([1 - v - w, v, w], dim=-1)
+        surface = (corner + v * edge_b + w * edge_c).T
+        return SurfacePoints(triangle, bary, (surface - points).norm(dim=-1))

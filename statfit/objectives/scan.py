@@ -35,21 +35,23 @@ ON_EDGE = 1e-6
 
 def masked_quantile(values: torch.Tensor, mask: torch.Tensor, q: float | torch.Tensor) -> torch.Tensor:
     """``torch.quantile(values[mask], q)`` (linear interpolation) bit for bit, as a (1,) tensor, without
-    compacting: static shapes, no host wait (NaN when no value is masked in)."""
+    compacting: static shapes, no host wait (NaN when no value is masked in). ``values`` and ``mask``
+    (..., M): one quantile per row, (..., 1)."""
     ordered = values.masked_fill(~mask, torch.inf).sort().values        # the masked-out last
     if not isinstance(q, torch.Tensor):   # (a tensor kept by the caller: no copy to the device each time)
         q = torch.tensor(q, dtype=values.dtype, device=values.device)
-    ranks = q * (mask.sum() - 1)                                         # > −1: truncates to ≥ 0
+    ranks = q * (mask.sum(dim=-1, keepdim=True) - 1)                     # > −1: truncates to ≥ 0
     low = ranks.long()
-    below, above = ordered.gather(0, torch.stack([low, ranks.ceil().long()])).unbind(0)
+    below, above = ordered.gather(-1, torch.cat([low, ranks.ceil().long()], dim=-1)).chunk(2, dim=-1)
     return below.lerp(above, ranks - low)
 
 
 def masked_median(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """``values[mask].median()`` (the lower of the two middle values) as a (1,) tensor, without
-    compacting (+inf when no value is masked in)."""
+    compacting (+inf when no value is masked in). ``values`` and ``mask`` (..., M): one per row, (..., 1)."""
     ordered = values.masked_fill(~mask, torch.inf).sort().values
-    return ordered.gather(0, (mask.sum() - 1).div(2, rounding_mode="floor").clamp_min_(0).view(1))
+    middle = (mask.sum(dim=-1, keepdim=True) - 1).div(2, rounding_mode="floor").clamp_min_(0)
+    return ordered.gather(-1, middle)
 
 
 class _PointToSurface(torch.autograd.Function):
