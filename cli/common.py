@@ -95,6 +95,13 @@ def setting_overrides(iterations: int | None, lr: float | None, beta: float | No
                 mode_gain=mode_gain)
 
 
+SilhouetteOption = typer.Option("auto", help="The silhouette term: two-sided (the model's outline matches the map's "
+                                "mask), one-sided (only model outside the mask counts: a model of part of what the map "
+                                "shows, e.g. a face mask in a photo of a head), covering (only mask the model leaves "
+                                "uncovered counts: a map of part of what the model makes, e.g. a face cut out of a "
+                                "photo by a skin mask, fitted with a head) or auto (one-sided for a model whose "
+                                "surface faces one way, as a face mask's does; else two-sided).")
+
 # Without a terminal, a progress line at most this often (seconds).
 PROGRESS_LINE_SECONDS = 5.0
 

@@ -19,7 +19,7 @@ from statfit.model.params_file import params_bytes, params_suffix
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
                                 LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
                                 ParamsOption, PowerOption, PresetOption, QuietOption, SeedOption, ThreadsOption,
-                                setting_overrides, within)
+                                setting_overrides, within, SilhouetteOption)
 from statfit_cli.runner import finish, fit_run
 
 PREVIEW_COLOURS = ("normals", "data_distance", "off_span", "observed")
@@ -55,10 +55,7 @@ def render(
                               show_default=False),
     silhouette_weight: float = typer.Option(SILHOUETTE_WEIGHT, help="Weight of the silhouette term (0: off).",
                                             callback=within(0, 1e6)),
-    silhouette: str = typer.Option("auto", help="The silhouette term: two-sided (the model's outline matches the "
-                                   "map's mask), one-sided (only model outside the mask counts: a model of part of "
-                                   "what the map shows, e.g. a face mask in a photo of a head) or auto (one-sided "
-                                   "for a model whose surface faces one way, as a face mask's does)."),
+    silhouette: str = SilhouetteOption,
     region: str = typer.Option(None, "--region", help="Fit only the model's region NAME (e.g. face): after the "
                                "alignment, only pixels showing the region's triangles count and the silhouette is "
                                "not used; the rest of the mesh follows the model's prior.", show_default=False),

@@ -11,13 +11,13 @@ from statfit.errors import StatfitError
 from statfit.io.normalmap import read_camera
 from statfit.model.statmodel import region_vertices
 from statfit.objectives.normals import SILHOUETTE_WEIGHT
-from statfit.render.job import ALIGNMENTS, NORMAL_CONVENTIONS, NORMAL_SPACES, render_stages
+from statfit.render.job import ALIGNMENTS, NORMAL_CONVENTIONS, NORMAL_SPACES, render_stages, silhouette_sides
 from statfit_cli.batch.options import (BatchThreadsOption, ClusterOption, ForceOption, InputsArgument, JsonOption,
                                        OutDirOption, SchedulerOption, TimeoutOption, WorkersOption)
 from statfit_cli.batch.running import check_engine, model_identity, prepared_inputs, run_fits
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, KOption, LamOption, LaplacianOption,
                                 LrOption, MethodOption, ModeGainOption, ModelOption, PowerOption, PresetOption,
-                                QuietOption, SeedOption, setting_overrides, within)
+                                QuietOption, SeedOption, setting_overrides, within, SilhouetteOption)
 
 
 def batch_render(
@@ -44,6 +44,7 @@ def batch_render(
     normal_convention: str = typer.Option("opencv", help="Axes of camera-space normals: opencv or opengl."),
     silhouette_weight: float = typer.Option(SILHOUETTE_WEIGHT, help="Weight of the silhouette term (0: off).",
                                             callback=within(0, 1e6)),
+    silhouette: str = SilhouetteOption,
     region: str = typer.Option(None, "--region", help="Fit only the model's region NAME.", show_default=False),
     device: str = DeviceOption,
     threads: int = BatchThreadsOption,
@@ -85,6 +86,7 @@ def batch_render(
     items = prepared_inputs(inputs, out_dir)
     job = FitJob("render", model_file, k, stages,
                  dict(camera=camera, align=align, normal_space=normal_space, normal_convention=normal_convention,
-                      silhouette_weight=silhouette_weight, region=region, seed=seed),
+                      silhouette_weight=silhouette_weight, silhouette=silhouette_sides(silhouette, model), region=region,
+                      seed=seed),
                  threads=threads, device=str(resolve_device(device, "render")), model_digest=digest, params=params)
     run_fits(items, job, out_dir, workers, scheduler, cluster, timeout, force, quiet, json_out)

@@ -10,7 +10,9 @@ bend a misplaced limb, never move it: docs/studies.md §13).
 silhouette: ``Σ (m − m̂)² / |target|`` over all pixels, where ``m`` is the rendered coverage
 antialiased at silhouette edges (its only gradients), ``m̂`` the target mask; one-sided,
 ``Σ max(m − m̂, 0)² / |target|``: only coverage outside the target counts (for a model of part of
-what the map shows, a face mask in a map of a head, whose outline is not the subject's).
+what the map shows, a face mask in a map of a head, whose outline is not the subject's); covering,
+``Σ max(m̂ − m, 0)² / |target|``: only target the model leaves uncovered counts (for a map of part of
+the model, a face cut out of a photo fitted with a head).
 The total is ``normal + silhouette_weight · silhouette``. Visibility is recomputed every call.
 With a region (a mask over triangles), the normal term counts only the pixels that show a region
 triangle.
@@ -40,16 +42,16 @@ class NormalMapObjective:
 
     def __init__(self, normals: torch.Tensor, mask: torch.Tensor, camera: Camera, faces: torch.Tensor,
                  silhouette_weight: float = SILHOUETTE_WEIGHT, adjacency: MeshAdjacency | None = None,
-                 region_faces: torch.Tensor | None = None, one_sided: bool = False):
+                 region_faces: torch.Tensor | None = None, one_sided: bool = False, covering: bool = False):
         """normals: (H, W, 3) target unit normals in camera space; mask: (H, W) bool target
         coverage; faces: (F, 3) long on the normals' device; adjacency: ``MeshAdjacency.from_faces(faces)``,
         pass it to share it between objectives; region_faces: (F,) bool, the triangles whose pixels
-        the normal term uses (all when None); one_sided: the one-sided silhouette term."""
+        the normal term uses (all when None); one_sided, covering: the one-sided silhouette terms."""
         self.mask = mask.to(normals.dtype)
         self.camera = camera
         self.faces = faces
         self.silhouette_weight = silhouette_weight
-        self.one_sided = one_sided
+        self.one_sided, self.covering = one_sided, covering
         self.adjacency = adjacency if adjacency is not None else MeshAdjacency.from_faces(faces)
         self.count = float(mask.sum())
         self.region_faces = region_faces
@@ -99,5 +101,7 @@ class NormalMapObjective:
             difference = coverage - self._target[3, :pixels]
             if self.one_sided:
                 difference = difference.clamp_min(0.0)
+            elif self.covering:
+                difference = difference.clamp_max(0.0)
             terms["silhouette"] = difference.square().sum() * (self.silhouette_weight / self.count)
         return terms

@@ -38,7 +38,7 @@ from statfit.core.threads import choose_threads, intra_op_threads
 
 ALIGNMENTS = ("none", "rigid", "similarity")
 NORMAL_SPACES = ("world", "camera")
-SILHOUETTES = ("auto", "two-sided", "one-sided")
+SILHOUETTES = ("auto", "two-sided", "one-sided", "covering")
 # A model whose surface, summed, faces one way by more than this share of its area is of part of the
 # subject (a face mask: ~0.45; heads cut at the neck: 0.06-0.18): `auto` gives it the one-sided
 # silhouette term (docs/studies.md §18: the mask fitted to whole-head maps 1.7-2x closer).
@@ -174,9 +174,13 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
     ``overrides`` replace the method's settings (see :func:`statfit.core.methods.resolve`); ``stages``
     replaces the method by an explicit pipeline. ``silhouette``: ``two-sided`` (the coverage matches
     the map's mask), ``one-sided`` (only coverage outside the mask counts: for a model of part of the
-    subject) or ``auto``: one-sided for a model whose surface faces one way (:func:`one_sided_silhouette`).
+    subject), ``covering`` (only mask left uncovered counts: for a map of part of the subject, a face
+    cut out by a skin mask fitted with a head) or ``auto``: one-sided for a model whose surface faces
+    one way (:func:`one_sided_silhouette`), else two-sided (a map cannot tell a cut outline from the
+    subject's: docs/studies.md §24).
     """
-    one_sided = silhouette_sides(silhouette, model) == "one-sided"
+    sides = silhouette_sides(silhouette, model)
+    one_sided, covering = sides == "one-sided", sides == "covering"
     if align not in ALIGNMENTS:
         raise StatfitError(f"unknown alignment {align!r}; choose one of {', '.join(ALIGNMENTS)}")
     if not (np.isfinite(silhouette_weight) and silhouette_weight >= 0):
@@ -208,11 +212,11 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
                 unit_camera = camera_in_frame(camera, frame)
                 guess = _centring_guess(x0, faces, unit_camera, normal_map.mask, align == "similarity")
                 coarse = NormalMapObjective(*downsampled(target, mask, unit_camera, ALIGN_SIZE), faces,
-                                            silhouette_weight, adjacency, one_sided=one_sided)
+                                            silhouette_weight, adjacency, one_sided=one_sided, covering=covering)
                 pose, x0 = _align(x0, coarse, space, guess, align == "similarity", unit_camera.rotation[2].to(dtype))
         objective = NormalMapObjective(target, mask, camera_in_frame(camera, frame, pose), faces,
                                        silhouette_weight if region is None else 0.0, adjacency, region_faces,
-                                       one_sided)
+                                       one_sided, covering)
         def to_world(x: torch.Tensor) -> np.ndarray:
             return frame.from_unit(pose.apply(x.detach().cpu().double().numpy()))
 
@@ -226,7 +230,7 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
 
 
 def silhouette_sides(silhouette: str, model: StatModel) -> str:
-    """``silhouette`` (auto, two-sided, one-sided) as the term ``model`` gets: auto resolved."""
+    """``silhouette`` (auto, two-sided, one-sided, covering) as the term ``model`` gets: auto resolved."""
     if silhouette not in SILHOUETTES:
         raise StatfitError(f"unknown silhouette {silhouette!r}; choose one of {', '.join(SILHOUETTES)}")
     if silhouette == "auto":
