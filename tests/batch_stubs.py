@@ -29,4 +29,7 @@ def copy_or_misbehave_together(job: FitJob, sources: list[str]) -> list[Outcome]
     for source in sources:
         if Path(source).stem.startswith(("crash", "hang")):
             copy_or_misbehave(job, source)
-    return [copy_or_misbehave(job, source) for source in sources]
+    outcomes = [copy_or_misbehave(job, source) for source in sources]
+    for outcome in outcomes:
+        outcome.summary["group"] = len(sources)
+    return outcomes

@@ -118,6 +118,20 @@ def test_a_group_that_crashes_or_hangs_is_rerun_an_input_at_a_time(tmp_path):
         assert (tmp_path / "out" / f"{name}.ply").read_bytes() == name.encode()
 
 
+def test_groups_are_split_so_that_no_worker_idles(tmp_path):
+    for index in range(10):
+        (tmp_path / f"ok{index}.ply").write_bytes(b"ok")
+    items = plan_outputs(expand_inputs([str(tmp_path / "*.ply")]), tmp_path / "out")
+    (tmp_path / "out").mkdir()
+    engine = LocalPool(2)
+    try:
+        run_batch(items, FitJob("register", None, None, resolve("none"), together=8), tmp_path / "out", engine,
+                  work=copy_or_misbehave, group_work=copy_or_misbehave_together)
+    finally:
+        engine.close()
+    assert sorted(row["summary"]["group"] for row in fit_rows(tmp_path / "out")) == [5] * 10   # not 8 + 2
+
+
 def test_scans_registered_together_fit_as_one_by_one(scans, tmp_path):
     """``--together``: each worker registers 4 scans in one program (two corrupt ones fail alone);
     each fit is as close to its scan as the one-by-one fit, and the settings say how it was made."""

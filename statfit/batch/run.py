@@ -4,8 +4,9 @@ finishes — output first (atomically), then its manifest line.
 Failures stay with their input: a bad input is a ``failed`` line with the fit's one-line error; a
 fit running past ``timeout`` is failed and its worker replaced; when a worker dies, the fits it may
 have taken down are rerun one at a time, so only the one that kills its worker alone is failed.
-With ``job.together`` > 1 a worker registers that many inputs in one program (``group_work``); a
-group that kills its worker or runs past ``timeout`` × its size is rerun an input at a time.
+With ``job.together`` > 1 a worker registers up to that many inputs in one program (``group_work``;
+fewer where the workers would otherwise idle); a group that kills its worker or runs past
+``timeout`` × its size is rerun an input at a time.
 """
 from __future__ import annotations
 
@@ -127,8 +128,10 @@ def run_batch(items: list[Item], job: FitJob, out_dir: Path, engine: Engine, *, 
 
 def _drive(todo: list[tuple[Item, str | None]], job: FitJob, engine: Engine, work: Callable, group_work: Callable,
            timeout: float | None, recorder: _Recorder) -> None:
-    size = max(1, job.together)
-    queue = deque(todo[i:i + size] for i in range(0, len(todo), size))     # groups of inputs
+    # Groups of at most ``job.together`` inputs, fewer where that keeps every worker busy (each
+    # runs its group's pose searches one after another).
+    size = max(1, min(job.together, -(-len(todo) // max(engine.workers, 1))))
+    queue = deque(todo[i:i + size] for i in range(0, len(todo), size))
     suspects: deque[tuple[Item, str | None]] = deque()  # in flight when a worker died: rerun alone
     running: dict[Any, list] = {}  # future → [group, alone]; submission order = start order
     started: dict[Any, float] = {}  # the futures a worker has taken (the oldest ``engine.workers``), since when
