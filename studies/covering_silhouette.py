@@ -16,24 +16,18 @@ method with the term ``auto`` gives them (two-sided for these models): on the ma
 """
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from render_fit_residual import OTHERS, RESULTS, SIZE, stored  # noqa: E402  (sets the benchmarks path too)
 from study_runs import study_main  # noqa: E402
 
-RESULTS = ROOT / "studies" / "results"
 ROWS = RESULTS / "covering_silhouette.json"
-STORED = RESULTS / "cross_family_render.json"
-SIZE = 256
 HEAD_MODELS = ("ict", "makehuman")
-OTHERS = ("pca", "statistical", "hybrid", "laplacian")
 
 
 def fit_case(people: str, model_family: str, seed: int) -> dict:
@@ -56,10 +50,6 @@ def fit_case(people: str, model_family: str, seed: int) -> dict:
     return {"people": people, "model": model_family, "seed": seed, "all": float(np.nanmean(distance)),
             "seen": float(np.nanmean(distance[seen])), "unseen": float(np.nanmean(distance[~seen])),
             "seconds": fit.seconds}
-
-
-def stored() -> dict:
-    return {(r["people"], r["model"], r["seed"], r["method"]): r for r in json.loads(STORED.read_text()) if "all" in r}
 
 
 def runs() -> list[tuple]:
