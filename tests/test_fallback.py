@@ -83,9 +83,14 @@ def test_a_shape_the_model_would_need_unusual_coefficients_for_is_refitted(embed
 
 
 def test_a_fit_that_cannot_explain_the_scan_is_laplacians_fit_from_the_same_pose(embedded_model, scan):
+    records = []
     with pytest.warns(StatfitWarning, match="cannot make.*refitted with laplacian"):
-        result = register(embedded_model, scan, threads=1, fallback=ALWAYS)
+        result = register(embedded_model, scan, threads=1, fallback=ALWAYS,
+                          on_record=lambda iteration, terms: records.append(iteration))
     laplacian = register(embedded_model, scan, "laplacian", threads=1)
+    # the refit's records follow the first fit's, numbered on (a log reads as one run)
+    assert records == sorted(records) and len(set(records)) == len(records)
+    assert records[-1] == result.iterations - 1
     assert result.fallback["used"]
     np.testing.assert_array_equal(result.vertices, laplacian.vertices)
     assert result.stages == resolve("laplacian")

@@ -78,8 +78,15 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
             if report["used"]:
                 stages = resolve(plan.fallback.method)
                 first = fit.result.iterations
-                fit = posed.fit(stages, plan.fallback_weight, timer, on_record, on_snapshot, warn_far=False)
+                fit = posed.fit(stages, plan.fallback_weight, timer, _counting_on(on_record, first),
+                                _counting_on(on_snapshot, first), warn_far=False)
                 fit.result.iterations += first
         return Fit(posed.to_scan_frame(fit.result.vertices), posed.transform, stages, fit.result.loss,
                    time.perf_counter() - started, dict(timer.seconds), fit.result.iterations, fit.pose, plan.threads,
                    report)
+
+
+def _counting_on(callback: Callable[..., None] | None, first: int) -> Callable[..., None] | None:
+    """``callback(iteration, ...)`` with the iterations numbered on from ``first`` (a refit's records
+    follow the first fit's in a log, as its iterations are summed)."""
+    return None if callback is None else lambda iteration, *rest: callback(first + iteration, *rest)
