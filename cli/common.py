@@ -115,7 +115,8 @@ def _progress_lines(total: int, label: str):
         now = time.perf_counter()
         if now - last >= PROGRESS_LINE_SECONDS:
             last = now
-            print(f"statfit: {label}: iteration {iteration + 1}/{total}, loss {terms.get('total', float('nan')):.4g}, "
+            print(f"statfit: {label}: iteration {iteration + 1}/{max(total, iteration + 1)}, "
+                  f"loss {terms.get('total', float('nan')):.4g}, "
                   f"{now - started:.0f} s", file=sys.stderr, flush=True)
 
     return advance
@@ -151,7 +152,9 @@ def progress_bar(total: int, label: str, enabled: bool):
         task = progress.add_task(label, total=total, loss="-")
 
         def advance(iteration: int, terms: dict[str, float]) -> None:
-            progress.update(task, completed=iteration + 1, loss=f"{terms.get('total', float('nan')):.3g}")
+            # a refit (register's fallback) runs past the planned total: the bar grows with it
+            progress.update(task, completed=iteration + 1, total=max(total, iteration + 1),
+                            loss=f"{terms.get('total', float('nan')):.3g}")
 
         yield advance
 
