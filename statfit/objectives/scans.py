@@ -64,7 +64,8 @@ class ScanBatch:
         self._landmarks = _StackedLandmarks.of(landmarks, self.query.num_vertices) \
             if landmarks is not None and any(each is not None for each in landmarks) else None
         self._use_landmarks = self._landmarks is not None
-        self._faces = None
+        shift = torch.arange(fits, device=device).mul_(self.query.num_vertices)
+        self._faces = (self.query.faces[None] + shift[:, None, None]).reshape(-1, 3)   # (B·F, 3): fit b's b·N + v
         self.attachment = None
         self._keep: torch.Tensor | None = None
         self._zeros: torch.Tensor | None = None
@@ -81,9 +82,6 @@ class ScanBatch:
         fits, count = self._valid.shape
         self.attachment = self.query.many(vertices, self.points, self._host_points)
         triangle, bary, dist = self.attachment.triangle, self.attachment.barycentric, self.attachment.distance
-        if self._faces is None:
-            shift = torch.arange(fits, device=vertices.device).mul_(vertices.shape[1])
-            self._faces = (self.query.faces[None] + shift[:, None, None]).reshape(-1, 3)          # (B·F, 3)
         self._corner_rows = self._faces.index_select(0, triangle)                                # (B·M, 3)
         self._corner_ids = self._corner_rows.view(-1)
         flat = vertices.reshape(-1, 3)
