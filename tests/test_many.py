@@ -206,3 +206,17 @@ def test_an_iteration_launches_one_fit_s_ops_for_many(embedded_model, shapes):
     one, six = per_iteration(1), per_iteration(6)
     assert six[0] <= 65 and six[0] <= one[0] + 6, (one, six)
     assert six[1] == 0
+
+
+def test_a_solve_of_more_columns_than_cholespy_takes_on_cuda_runs_in_blocks(embedded_model):
+    """cholespy's CUDA solve takes at most 128 right-hand sides (64 fits: 192 columns); the solver
+    then solves in blocks. Forced on the CPU with blocks of 2: the same bits as one call."""
+    from statfit.core.laplacian import smoothing_matrix
+    from statfit.core.solvers import CholespySolver
+
+    solver = CholespySolver(smoothing_matrix(embedded_model.template, embedded_model.faces, 19.0), torch.float32,
+                            torch.device("cpu"))
+    rhs = torch.randn(embedded_model.num_vertices, 7, generator=torch.Generator().manual_seed(0))
+    whole = solver.solve(rhs)
+    solver.max_columns = 2
+    assert torch.equal(solver.solve(rhs), whole)

@@ -21,9 +21,15 @@ SOLVERS: tuple[str, ...] = ("cholespy", "scipy-lu", "igl", "dense", "auto")
 DENSE_LIMIT = 16_384
 
 
+# cholespy's CUDA solve takes at most this many right-hand sides in one call (its docstring).
+CHOLESPY_CUDA_COLUMNS = 128
+
+
 class CholespySolver:
     """Sparse Cholesky (CHOLMOD on CPU, cuSolver-free kernels on CUDA) from the cholespy package.
-    Not capturable in a CUDA graph: its kernels run on CUDA's legacy default stream."""
+    Not capturable in a CUDA graph: its kernels run on CUDA's legacy default stream. On CUDA a
+    solve of more than :data:`CHOLESPY_CUDA_COLUMNS` columns (many fits at once) runs in blocks of
+    that many (``max_columns``; None: one call)."""
 
     capturable = False
 
@@ -33,6 +39,7 @@ class CholespySolver:
         coo = sp.coo_matrix(matrix)
         cls = cholespy.CholeskySolverF if dtype == torch.float32 else cholespy.CholeskySolverD
         self.dtype, self.device = dtype, device
+        self.max_columns = CHOLESPY_CUDA_COLUMNS if torch.device(device).type == "cuda" else None
         ii = torch.as_tensor(coo.row.astype(np.int32), device=device)
         jj = torch.as_tensor(coo.col.astype(np.int32), device=device)
         vals = torch.as_tensor(coo.data.astype(np.float64), device=device)
@@ -41,7 +48,14 @@ class CholespySolver:
     def solve(self, rhs: torch.Tensor) -> torch.Tensor:
         rhs = rhs.to(self.dtype).contiguous()
         out = torch.empty_like(rhs)
-        self._solver.solve(rhs, out)
+        if self.max_columns is None or rhs.dim() == 1 or rhs.shape[1] <= self.max_columns:
+            self._solver.solve(rhs, out)
+            return out
+        for first in range(0, rhs.shape[1], self.max_columns):
+            block = rhs[:, first:first + self.max_columns].contiguous()
+            solved = torch.empty_like(block)
+            self._solver.solve(block, solved)
+            out[:, first:first + self.max_columns] = solved
         return out
 
 
