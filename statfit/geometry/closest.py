@@ -108,7 +108,7 @@ class ClosestPointQuery:
         # on the host: the candidates are listed where the KD-tree query runs
         self._ring, self._ring_first, self._ring_count = vertex_triangle_lists(faces, num_vertices)
         self._faces_flat = self.faces.reshape(-1)
-        self._stacked: torch.Tensor | None = None   # B copies of the faces, for :meth:`many`
+        self._stacked: torch.Tensor | None = None   # B copies of the faces (:meth:`stacked_faces`)
 
     def _candidates(self, nearest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The triangles around each point's nearest vertices ``nearest`` (M, k), one flat list (L,)
@@ -147,11 +147,16 @@ class ClosestPointQuery:
             listed = [self._host_candidates(host[b], host_points[b]) for b in range(fits)]
             candidates = np.concatenate([c + b * triangles for b, (c, _) in enumerate(listed)])
             owner = np.concatenate([o + b * count for b, (_, o) in enumerate(listed)])
-            if self._stacked is None or len(self._stacked) != 3 * triangles * fits:
-                shift = torch.arange(fits, device=self.faces.device).mul_(vertices.shape[1])
-                self._stacked = (self._faces_flat[None] + shift[:, None]).reshape(-1)
-            return self._solve(vertices.reshape(-1, 3), self._stacked, points.reshape(-1, 3),
+            return self._solve(vertices.reshape(-1, 3), self.stacked_faces(fits).view(-1), points.reshape(-1, 3),
                                *(torch.as_tensor(a, device=points.device) for a in (candidates, owner)))
+
+    def stacked_faces(self, fits: int) -> torch.Tensor:
+        """(B·F, 3): the faces of ``fits`` meshes of this topology stacked (B·N vertices), mesh b's
+        vertex v at row b·N + v; the last B's kept."""
+        if self._stacked is None or len(self._stacked) != fits * len(self.faces):
+            shift = torch.arange(fits, device=self.faces.device).mul_(self.num_vertices)
+            self._stacked = (self.faces[None] + shift[:, None, None]).reshape(-1, 3)
+        return self._stacked
 
     def _host_candidates(self, host: np.ndarray, host_points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The candidate triangles of each point and each one's point, on the host (a KD-tree of

@@ -54,6 +54,37 @@ def masked_median(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return ordered.gather(-1, middle)
 
 
+def attached_normals(vertices: torch.Tensor, corner_ids: torch.Tensor) -> torch.Tensor:
+    """(M, 3) unit normals of the triangles whose corners ``corner_ids`` (3M,) are rows of ``vertices``."""
+    a, b, c = vertices.index_select(0, corner_ids).view(-1, 3, 3).unbind(dim=1)
+    return torch.nn.functional.normalize(torch.linalg.cross(b - a, c - a), dim=-1)
+
+
+def counted(keep: torch.Tensor, dist: torch.Tensor, clutter: bool | torch.Tensor, agree: torch.Tensor | None,
+            quantile: torch.Tensor | float | None) -> torch.Tensor:
+    """Which attached points the data term counts, (..., M) bool, from those ``keep`` (..., M) leaves
+    (off the open border, on the region) and their distances ``dist`` (..., M), per row: with
+    ``clutter`` (a bool, or (..., 1) per row), only those whose normals ``agree`` (None: no normals)
+    and within OUTLIER_SIGMAS robust deviations of the median; then, for a ``quantile`` (None: no
+    trim), those within that quantile of the distances."""
+    if clutter is not False:
+        cluttered = keep if agree is None else keep & agree
+        median = masked_median(dist, cluttered).double()
+        cluttered = cluttered & (dist <= (OUTLIER_SIGMAS * 1.4826 * median).clamp_min(FLOOR))
+        keep = cluttered if clutter is True else torch.where(clutter, cluttered, keep)
+    if quantile is not None:
+        keep = keep & (dist <= masked_quantile(dist, keep, quantile))
+    return keep
+
+
+def data_weights(keep: torch.Tensor, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """The data term's weights (M·, 1, 1) of the points ``keep`` (..., M) counts: 1/M' per counted
+    point of its row for the value, 2/M' for the gradient (M' = 0: NaN, as the mean of nothing)."""
+    share = keep.sum(dim=-1, keepdim=True).to(dtype).reciprocal()
+    weights = keep.to(dtype)
+    return (weights * share).view(-1, 1, 1), (weights * (2 * share)).view(-1, 1, 1)
+
+
 class _PointToSurface(torch.autograd.Function):
     """The data term Σᵢ wᵢ ‖pᵢ − Σ_c b_ic x_{t_ic}‖² (wᵢ = 1/M' for the M' points kept, else 0) with
     its gradient written out: the same values as autograd's for the mean over the kept points, in a
@@ -125,21 +156,11 @@ class ScanObjective:
         keep = ~on_border
         if self.region_faces is not None:
             keep &= self.region_faces.index_select(0, triangle)
-        if self.clutter:
-            if self.scan_normals is not None:
-                keep &= (self.normals * self.scan_normals).sum(dim=-1).abs() >= NORMAL_COSINE
-            median = masked_median(dist, keep).double()
-            keep &= dist <= (OUTLIER_SIGMAS * 1.4826 * median).clamp_min(FLOOR)
-        if self.trim > 0:
-            q = self._quantile if self._quantile.dtype == dist.dtype else 1.0 - self.trim
-            keep &= dist <= masked_quantile(dist, keep, q)
-        self._keep = keep
-        # the data term's weights: 1/M' per kept point for the value, 2/M' for the gradient
-        # (M' = 0: NaN, as the mean of nothing)
-        share = keep.sum().to(dist.dtype).reciprocal()
-        weights = keep.to(dist.dtype)
-        self._mean_weights = (weights * share).view(-1, 1, 1)
-        self._grad_weights = (weights * (2 * share)).view(-1, 1, 1)
+        agree = None if not self.clutter or self.scan_normals is None else \
+            (self.normals * self.scan_normals).sum(dim=-1).abs() >= NORMAL_COSINE
+        q = self._quantile if self._quantile.dtype == dist.dtype else 1.0 - self.trim
+        self._keep = keep = counted(keep, dist, self.clutter, agree, q if self.trim > 0 else None)
+        self._mean_weights, self._grad_weights = data_weights(keep, dist.dtype)
         self._bary_columns = bary[:, :, None]
         self._neg_bary = bary.neg()[:, :, None]
         return self.attachment
@@ -148,8 +169,7 @@ class ScanObjective:
     def normals(self) -> torch.Tensor:
         """(M, 3) unit normals of the triangles the points are attached to, at the last refresh."""
         if self._normals is None:
-            a, b, c = self._refreshed_at.index_select(0, self._corner_ids).view(-1, 3, 3).unbind(dim=1)
-            self._normals = torch.nn.functional.normalize(torch.linalg.cross(b - a, c - a), dim=-1)
+            self._normals = attached_normals(self._refreshed_at, self._corner_ids)
         return self._normals
 
     def _gradient_state(self) -> tuple[torch.Tensor, ...]:

@@ -20,8 +20,8 @@ import torch
 
 from statfit.errors import StatfitError
 from statfit.objectives.landmarks import LandmarkObjective
-from statfit.objectives.scan import (FLOOR, NORMAL_COSINE, ON_EDGE, OUTLIER_SIGMAS, ScanObjective, _PointToSurface,
-                                     masked_median, masked_quantile)
+from statfit.objectives.scan import (NORMAL_COSINE, ON_EDGE, ScanObjective, _PointToSurface, attached_normals, counted,
+                                     data_weights)
 
 
 class ScanBatch:
@@ -64,8 +64,7 @@ class ScanBatch:
         self._landmarks = _StackedLandmarks.of(landmarks, self.query.num_vertices) \
             if landmarks is not None and any(each is not None for each in landmarks) else None
         self._use_landmarks = self._landmarks is not None
-        shift = torch.arange(fits, device=device).mul_(self.query.num_vertices)
-        self._faces = (self.query.faces[None] + shift[:, None, None]).reshape(-1, 3)   # (B·F, 3): fit b's b·N + v
+        self._faces = self.query.stacked_faces(fits)                                             # (B·F, 3)
         self.attachment = None
         self._keep: torch.Tensor | None = None
         self._zeros: torch.Tensor | None = None
@@ -92,21 +91,13 @@ class ScanBatch:
         if self._region is not None:
             keep &= self._region.index_select(0, triangle).view(fits, count)
         dist = dist.view(fits, count)
+        agree = None
         if self._any_clutter:   # the clutter rules, on the fits that have them
-            a, b, c = flat.index_select(0, self._corner_ids).view(-1, 3, 3).unbind(dim=1)
-            normals = torch.nn.functional.normalize(torch.linalg.cross(b - a, c - a), dim=-1).view(fits, count, 3)
-            agree = (normals * self._scan_normals).sum(dim=-1).abs() >= NORMAL_COSINE
-            cluttered = keep & (agree | self._no_normals)
-            median = masked_median(dist, cluttered).double()
-            cluttered &= dist <= (OUTLIER_SIGMAS * 1.4826 * median).clamp_min(FLOOR)
-            keep = torch.where(self._clutter, cluttered, keep)
-        if self.trim > 0:
-            keep &= dist <= masked_quantile(dist, keep, self._quantile)
-        self._keep = keep
-        share = keep.sum(dim=1, keepdim=True).to(dist.dtype).reciprocal()                       # (B, 1)
-        weights = keep.to(dist.dtype)
-        self._mean_weights = (weights * share).view(-1, 1, 1)
-        self._grad_weights = (weights * (2 * share)).view(-1, 1, 1)
+            normals = attached_normals(flat, self._corner_ids).view(fits, count, 3)
+            agree = ((normals * self._scan_normals).sum(dim=-1).abs() >= NORMAL_COSINE) | self._no_normals
+        self._keep = keep = counted(keep, dist, self._clutter if self._any_clutter else False, agree,
+                                    self._quantile if self.trim > 0 else None)
+        self._mean_weights, self._grad_weights = data_weights(keep, dist.dtype)
         self._bary_columns = bary[:, :, None]
         self._neg_bary = bary.neg()[:, :, None]
 
