@@ -18,8 +18,8 @@ from statfit.model.params import project, vertex_fields
 from statfit.model.params_file import params_bytes, params_suffix
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
                                 LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
-                                ParamsOption, PowerOption, PresetOption, QuietOption, SeedOption, ThreadsOption,
-                                setting_overrides, within, SilhouetteOption)
+                                ParamsOption, PowerOption, PresetOption, QuietOption, SeedOption, SilhouetteOption,
+                                ThreadsOption, setting_overrides, within)
 from statfit_cli.runner import finish, fit_run
 
 PREVIEW_COLOURS = ("normals", "data_distance", "off_span", "observed")

@@ -123,3 +123,7 @@ def test_an_unknown_silhouette_is_refused_in_one_line(tmp_path):
                          str(tmp_path / "fit.ply")])
     assert code == 2 and err.count("\n") == 1 and "unknown silhouette" in err
     assert not (tmp_path / "fit.ply").exists()
+    code, err = run_cli(["batch", "render", str(exr), "--camera", str(camera), "--silhouette", "sideways",
+                         "--out-dir", str(tmp_path / "fits")])
+    assert code == 2 and err.count("\n") == 1 and "unknown silhouette" in err
+    assert not (tmp_path / "fits").exists()

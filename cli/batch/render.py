@@ -17,7 +17,7 @@ from statfit_cli.batch.options import (BatchThreadsOption, ClusterOption, ForceO
 from statfit_cli.batch.running import check_engine, model_identity, prepared_inputs, run_fits
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, KOption, LamOption, LaplacianOption,
                                 LrOption, MethodOption, ModeGainOption, ModelOption, PowerOption, PresetOption,
-                                QuietOption, SeedOption, setting_overrides, within, SilhouetteOption)
+                                QuietOption, SeedOption, SilhouetteOption, setting_overrides, within)
 
 
 def batch_render(
@@ -81,12 +81,12 @@ def batch_render(
         read_camera(camera_path)  # checked once, here
         camera = str(camera_path.resolve())
     model_file, digest, model = model_identity(model_path, k)
+    sides = silhouette_sides(silhouette, model)       # checked before any folder is made
     if region is not None:
         region_vertices(model, region)
     items = prepared_inputs(inputs, out_dir)
     job = FitJob("render", model_file, k, stages,
                  dict(camera=camera, align=align, normal_space=normal_space, normal_convention=normal_convention,
-                      silhouette_weight=silhouette_weight, silhouette=silhouette_sides(silhouette, model), region=region,
-                      seed=seed),
+                      silhouette_weight=silhouette_weight, silhouette=sides, region=region, seed=seed),
                  threads=threads, device=str(resolve_device(device, "render")), model_digest=digest, params=params)
     run_fits(items, job, out_dir, workers, scheduler, cluster, timeout, force, quiet, json_out)

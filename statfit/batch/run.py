@@ -105,8 +105,9 @@ def run_batch(items: list[Item], job: FitJob, out_dir: Path, engine: Engine, *, 
     """Fit every item not already done with ``job``'s settings (all with ``force``) on ``engine``,
     recording each in ``out_dir``'s manifest. ``on_start(to_fit, skipped)`` is called once the plan
     is known, ``on_row(row)`` after every manifest line. ``work(job, source)`` replaces the fit
-    (benchmarks of the bookkeeping), ``group_work(job, sources)`` the fit of ``job.together`` inputs. KeyboardInterrupt stops the engine and propagates; what was
-    recorded stays."""
+    (benchmarks of the bookkeeping), ``group_work(job, sources)`` the fit of a group of inputs
+    (``job.together`` > 1). KeyboardInterrupt stops the engine and propagates; what was recorded
+    stays."""
     started = time.perf_counter()
     key = settings_key(job.settings())
     report = BatchReport()

@@ -87,7 +87,6 @@ class _Member:
         self.done = 0
         self.loss: dict[str, float] = {}
         self.run = None     # the last pipeline's result (posed._StagesRun)
-        self.first = 0      # iterations before a fallback's refit
 
     @property
     def failed(self) -> bool:
@@ -141,11 +140,10 @@ def register_many(model: StatModel, scans: Sequence[np.ndarray | Scan], method: 
                     with member.timer("fallback test"):
                         reports[member.index] = member.alone(member.posed.fallback_test, member.run, plan.fallback)
             refit = [m for m in posed if not m.failed and (reports.get(m.index) or {}).get("used")]
-            for member in refit:
-                member.first = member.run.result.iterations
+            first = {m.index: m.run.result.iterations for m in refit}      # the refit's iterations add to these
             _fit_together(refit, resolve(plan.fallback.method), plan.fallback_weight, warn_far=False)
             for member in refit:
-                member.run.result.iterations += member.first
+                member.run.result.iterations += first[member.index]
         for member in posed:
             if member.failed:
                 continue
