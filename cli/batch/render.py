@@ -6,12 +6,14 @@ from pathlib import Path
 import typer
 
 from statfit.batch.fits import FitJob
+from statfit.batch.plan import Item
 from statfit.core.device import resolve_device
 from statfit.errors import StatfitError
-from statfit.io.normalmap import read_camera
+from statfit.io.normalmap import read_camera, read_normal_map
 from statfit.model.statmodel import region_vertices
 from statfit.objectives.normals import SILHOUETTE_WEIGHT
 from statfit.render.job import ALIGNMENTS, NORMAL_CONVENTIONS, NORMAL_SPACES, render_stages, silhouette_sides
+from statfit.render.many import together_for
 from statfit_cli.batch.options import (BatchThreadsOption, ClusterOption, ForceOption, InputsArgument, JsonOption,
                                        OutDirOption, SchedulerOption, TimeoutOption, WorkersOption)
 from statfit_cli.batch.running import check_engine, model_identity, prepared_inputs, run_fits
@@ -48,6 +50,11 @@ def batch_render(
     region: str = typer.Option(None, "--region", help="Fit only the model's region NAME.", show_default=False),
     device: str = DeviceOption,
     threads: int = BatchThreadsOption,
+    together: int = typer.Option(None, "--together", help="Maps each worker fits in one program: each its own "
+                                 "alignment, their fits stepped together (one renderer for all, one launch per op). "
+                                 "Default: 1 on a CPU; on a GPU as many as fit in a quarter of its free memory, at "
+                                 "most 64. Not the same bytes as one at a time (docs/batch.md).",
+                                 show_default=False, callback=within(1, 4096)),
     seed: int = SeedOption,
     iterations: int = IterationsOption,
     lr: float = LrOption,
@@ -66,6 +73,7 @@ def batch_render(
         \b
         statfit batch render 'maps/*.exr' --camera-from-header --model model.npz --out-dir fits/ --workers 2
         statfit batch render 'maps/*.exr' --out-dir fits/ --params    # fits/<map>.params.json too
+        statfit batch render 'maps/*.exr' --out-dir fits/ --device cuda --workers 4   # many maps at once a worker
     """
     check_engine(scheduler, cluster)
     if camera_path is not None and camera_from_header:
@@ -85,8 +93,26 @@ def batch_render(
     if region is not None:
         region_vertices(model, region)
     items = prepared_inputs(inputs, out_dir)
+    fit_device = resolve_device(device, "render")
+    if together is None:
+        together = together_for(model, _map_pixels(items), fit_device) if fit_device.type == "cuda" else 1
     job = FitJob("render", model_file, k, stages,
                  dict(camera=camera, align=align, normal_space=normal_space, normal_convention=normal_convention,
                       silhouette_weight=silhouette_weight, silhouette=sides, region=region, seed=seed),
-                 threads=threads, device=str(resolve_device(device, "render")), model_digest=digest, params=params)
+                 threads=threads, device=str(fit_device), model_digest=digest, params=params, together=together)
     run_fits(items, job, out_dir, workers, scheduler, cluster, timeout, force, quiet, json_out)
+
+
+# The pixels assumed of a batch's maps when none of the first few can be read (a 1024² map).
+ASSUMED_PIXELS = 1024 * 1024
+
+
+def _map_pixels(items: list[Item]) -> int:
+    """The pixel count of the first readable map of the first few ``items`` (a batch's maps are
+    usually of one size), else :data:`ASSUMED_PIXELS`."""
+    for item in items[:8]:
+        try:
+            return int(read_normal_map(item.source).mask.size)
+        except Exception:  # noqa: BLE001 - an unreadable map fails in its own fit; here it says nothing
+            continue
+    return ASSUMED_PIXELS

@@ -16,6 +16,9 @@ from statfit import __version__
 from statfit.errors import StatfitError, one_line
 from statfit.model.importers.cache import open_model
 from statfit.render.job import reconstruct
+from statfit.render.many import reconstruct_many
+from statfit.renderer import Camera
+from statfit.structures.normal_map import NormalMap
 from statfit.io.mesh import load_scan, mesh_bytes
 from statfit.io.normalmap import camera_for_map, read_normal_map
 from statfit.model.statmodel import StatModel
@@ -24,10 +27,11 @@ from statfit.model.params import project, vertex_fields
 from statfit.model.params_file import params_bytes
 from statfit.core.stages import Fit
 from statfit.registration.job import register
-from statfit.registration.many import ScanFit, register_many
+from statfit.registration.many import register_many
 from statfit.structures.scan import Scan
 from statfit.core.methods import Fallback
 from statfit.core.settings import Settings
+from statfit.core.together import FitOutcome
 from statfit.core.threads import flush_denormals_everywhere, limit_threads
 
 COMMANDS = ("register", "render")
@@ -115,25 +119,40 @@ PARAMS_SUFFIX = ".params.json"
 
 
 def _fit(job: FitJob, source: str, model: StatModel) -> tuple[bytes, dict[str, Any], dict[str, bytes]]:
+    observed = _read(job, source)
     common = dict(stages=job.stages, device=job.device, threads=job.threads)
     if job.command == "register":
-        scan = load_scan(source, job.options.get("seed", 0))
-        return _registered(job, model, scan, register(model, scan, **common, **job.options, fallback=job.fallback))
+        result = register(model, observed, **common, **job.options, fallback=job.fallback)
+    else:
+        result = reconstruct(model, *observed, **common, **_render_options(job))
+    return _fitted(job, model, observed, result)
+
+
+def _read(job: FitJob, source: str) -> Scan | tuple[NormalMap, Camera]:
+    """What ``job`` fits from ``source``: a scan, or a normal map and its camera."""
+    if job.command == "register":
+        return load_scan(source, job.options.get("seed", 0))
     if job.command == "render":
-        options = dict(job.options)
-        camera_path = options.pop("camera", None)
         normal_map = read_normal_map(source)
-        camera = camera_for_map(normal_map, camera_path, source)
-        result = reconstruct(model, normal_map, camera, **common, **options)
-        pose = {"model_to_world": result.transform.as_matrix().tolist()}
-        support = view_support(result.vertices, model.faces, [(camera, normal_map.mask)])
-        return _output(job, model, result, pose, support)
+        return normal_map, camera_for_map(normal_map, job.options.get("camera"), source)
     raise StatfitError(f"unknown batch command {job.command!r}; choose one of {', '.join(COMMANDS)}")
 
 
-def _registered(job: FitJob, model: StatModel, scan: Scan, result: Fit) -> tuple[bytes, dict[str, Any], dict[str, bytes]]:
-    pose = {"model_to_scan": result.transform.as_matrix().tolist(), "pose": result.pose, "fallback": result.fallback}
-    return _output(job, model, result, pose, scan_support(result.vertices, scan.points))
+def _render_options(job: FitJob) -> dict[str, Any]:
+    """``reconstruct``'s options of a render job (the camera is read with the map)."""
+    return {name: value for name, value in job.options.items() if name != "camera"}
+
+
+def _fitted(job: FitJob, model: StatModel, observed: Scan | tuple[NormalMap, Camera], result: Fit
+            ) -> tuple[bytes, dict[str, Any], dict[str, bytes]]:
+    """The output of ``result``, the fit of ``observed`` (what :func:`_read` gave)."""
+    if job.command == "register":
+        pose = {"model_to_scan": result.transform.as_matrix().tolist(), "pose": result.pose,
+                "fallback": result.fallback}
+        return _output(job, model, result, pose, scan_support(result.vertices, observed.points))
+    normal_map, camera = observed
+    pose = {"model_to_world": result.transform.as_matrix().tolist()}
+    return _output(job, model, result, pose, view_support(result.vertices, model.faces, [(camera, normal_map.mask)]))
 
 
 def _output(job: FitJob, model: StatModel, result: Fit, pose: dict[str, Any], support: tuple
@@ -159,31 +178,35 @@ def run_job(job: FitJob, source: str) -> Outcome:
 
 
 def run_group(job: FitJob, sources: list[str]) -> list[Outcome]:
-    """Register ``sources`` together (:func:`statfit.registration.many.register_many`): one
-    outcome per source, in order, each with its own error or fit, warnings and seconds (its own
-    reading, pose search and closed-form stage; its share of the stages stepped together)."""
+    """Fit ``sources`` together (:func:`statfit.registration.many.register_many`,
+    :func:`statfit.render.many.reconstruct_many`): one outcome per source, in order, each with its own
+    error or fit, warnings and seconds (its own reading, pose search and closed-form stage; its share
+    of the stages stepped together)."""
     prepare_worker(job.max_threads)
     outcomes: dict[int, Outcome] = {}
-    scans: dict[int, Scan] = {}
+    observed: dict[int, Scan | tuple[NormalMap, Camera]] = {}
     for index, source in enumerate(sources):
         try:
-            scans[index] = load_scan(source, job.options.get("seed", 0))
+            observed[index] = _read(job, source)
         except Exception as exc:  # noqa: BLE001 - this input's one line, the others go on
             outcomes[index] = Outcome(None, {}, one_line(exc), 0.0)
-    order = sorted(scans)
+    order = sorted(observed)
+    common = dict(stages=job.stages, device=job.device, threads=job.threads)
     try:
-        if job.command != "register":
-            raise StatfitError(f"only register fits several inputs together, not {job.command}")
         model = _model(job.model, job.k)
-        together = register_many(model, [scans[i] for i in order], stages=job.stages, device=job.device,
-                                 threads=job.threads, fallback=job.fallback, **job.options)
+        if job.command == "register":
+            together = register_many(model, [observed[i] for i in order], **common, fallback=job.fallback,
+                                     **job.options)
+        else:
+            together = reconstruct_many(model, [observed[i][0] for i in order], [observed[i][1] for i in order],
+                                        **common, **_render_options(job))
     except Exception as exc:  # noqa: BLE001 - a bad model or a bug: every fit of the group says so
-        together = [ScanFit(error=one_line(exc)) for _ in order]
+        together = [FitOutcome(error=one_line(exc)) for _ in order]
     for index, fitted in zip(order, together):
         if fitted.fit is None:
             outcome = Outcome(None, {}, fitted.error, 0.0)
         else:
-            outcome = _guarded(lambda: _registered(job, model, scans[index], fitted.fit))
+            outcome = _guarded(lambda: _fitted(job, model, observed[index], fitted.fit))
             outcome.seconds = fitted.fit.seconds
         if fitted.warnings:
             outcome.summary["warnings"] = fitted.warnings

@@ -4,7 +4,7 @@ finishes — output first (atomically), then its manifest line.
 Failures stay with their input: a bad input is a ``failed`` line with the fit's one-line error; a
 fit running past ``timeout`` is failed and its worker replaced; when a worker dies, the fits it may
 have taken down are rerun one at a time, so only the one that kills its worker alone is failed.
-With ``job.together`` > 1 a worker registers up to that many inputs in one program (``group_work``;
+With ``job.together`` > 1 a worker fits up to that many inputs in one program (``group_work``;
 fewer where the workers would otherwise idle); a group that kills its worker or runs past
 ``timeout`` × its size is rerun an input at a time.
 """

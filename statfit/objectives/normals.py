@@ -19,6 +19,8 @@ triangle.
 """
 from __future__ import annotations
 
+from typing import Sequence
+
 import torch
 
 from statfit.renderer import Camera, MeshAdjacency
@@ -35,38 +37,56 @@ class NormalMapObjective:
     the whole (padded) image. Non-finite vertices cover no pixel and give a non-finite loss, which
     the loop's record step finds: its divergence check waits for the device at records only
     (``deferred_checks``).
+
+    B views of one mesh topology (``normals`` (B, H, W, 3), one camera per view) are one term: the
+    renderer draws B meshes (vertices (B, N, 3)) into B images stacked, each view's terms are
+    normalised by its own counts, and the term is their sum, so each fit's gradient is what its own
+    term gives it (:meth:`per_fit`: each view's terms).
     """
 
     deferred_checks = True
     capturable = True       # static shapes, no host reads: a CUDA graph can capture it (statfit.core.graphs)
 
-    def __init__(self, normals: torch.Tensor, mask: torch.Tensor, camera: Camera, faces: torch.Tensor,
-                 silhouette_weight: float = SILHOUETTE_WEIGHT, adjacency: MeshAdjacency | None = None,
-                 region_faces: torch.Tensor | None = None, one_sided: bool = False, covering: bool = False):
-        """normals: (H, W, 3) target unit normals in camera space; mask: (H, W) bool target
-        coverage; faces: (F, 3) long on the normals' device; adjacency: ``MeshAdjacency.from_faces(faces)``,
-        pass it to share it between objectives; region_faces: (F,) bool, the triangles whose pixels
-        the normal term uses (all when None); one_sided, covering: the one-sided silhouette terms."""
+    def __init__(self, normals: torch.Tensor, mask: torch.Tensor, camera: Camera | Sequence[Camera],
+                 faces: torch.Tensor, silhouette_weight: float = SILHOUETTE_WEIGHT,
+                 adjacency: MeshAdjacency | None = None, region_faces: torch.Tensor | None = None,
+                 one_sided: bool = False, covering: bool = False):
+        """normals: (H, W, 3) target unit normals in camera space, or (B, H, W, 3) for B views;
+        mask: (H, W) or (B, H, W) bool target coverage; camera: one per view; faces: (F, 3) long on
+        the normals' device; adjacency: ``MeshAdjacency.from_faces(faces)``, pass it to share it
+        between objectives; region_faces: (F,) bool, the triangles whose pixels the normal term uses
+        (all when None); one_sided, covering: the one-sided silhouette terms."""
+        self.views = len(normals) if normals.dim() == 4 else None
+        views = self.views or 1
+        normals, mask = normals.view(views, *normals.shape[-3:]), mask.view(views, *mask.shape[-2:])
         self.mask = mask.to(normals.dtype)
         self.camera = camera
         self.faces = faces
         self.silhouette_weight = silhouette_weight
         self.one_sided, self.covering = one_sided, covering
         self.adjacency = adjacency if adjacency is not None else MeshAdjacency.from_faces(faces)
-        self.count = float(mask.sum())
+        counts = self.mask.sum(dim=(1, 2))                                                # (B,)
+        self.count = float(counts.sum())
         self.region_faces = region_faces
-        # The target on the renderer's padded pixel grid (one border pixel, then a dump pixel and
-        # its neighbours): normals (3, E), mask (E,); region (F+1,) per triangle, 0 for "none".
-        height, width = mask.shape
-        padded = normals.new_zeros(4, height + 2, width + 2)
-        padded[:3, 1:-1, 1:-1] = normals.permute(2, 0, 1)
-        padded[3, 1:-1, 1:-1] = self.mask
+        # The targets on the renderer's padded pixel grid (each image with one border pixel, stacked;
+        # then a dump pixel and its neighbours): normals (3, E), mask (E,); region (BF+1,) per
+        # triangle, 0 for "none"; with B views, each pixel's view (E,) (B: the dump) and the
+        # silhouette's per-pixel weight (its view's 1 / count).
+        height, width = mask.shape[1:]
+        padded = normals.new_zeros(4, views, height + 2, width + 2)
+        padded[:3, :, 1:-1, 1:-1] = normals.permute(3, 0, 1, 2)
+        padded[3, :, 1:-1, 1:-1] = self.mask
         self._target = torch.nn.functional.pad(padded.view(4, -1), (0, width + 3))    # (4, E)
         self._target_rows = self._target.T.contiguous()                                 # (E, 4)
-        self._region = torch.ones(len(faces) + 1, dtype=normals.dtype, device=normals.device)
+        self._region = torch.ones(views * len(faces) + 1, dtype=normals.dtype, device=normals.device)
         self._region[-1] = 0
         if region_faces is not None:
-            self._region[:-1] = region_faces.to(normals.dtype)
+            self._region[:-1] = region_faces.to(normals.dtype).repeat(views)
+        if self.views is not None:
+            view_pixels = (height + 2) * (width + 2)
+            self._view = torch.arange(views, device=normals.device).repeat_interleave(view_pixels)
+            self._view = torch.nn.functional.pad(self._view, (0, width + 3), value=views)
+            self._silhouette_scale = (silhouette_weight / counts.double()).repeat_interleave(view_pixels)
         self._renderer: SteadyRenderer | None = None
 
     def prepare(self, vertices: torch.Tensor, iteration: int) -> None:
@@ -81,12 +101,32 @@ class NormalMapObjective:
         return self._renderer is not None and self._renderer.replayed()
 
     def __call__(self, vertices: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The terms (0-d) at ``vertices`` (N, 3), or (B, N, 3) for B views: the sums of the views'."""
+        if self.views is None:
+            return self._single(vertices)
+        return {name: each.sum() for name, each in self._per_view(vertices).items()}
+
+    def per_fit(self, vertices: torch.Tensor) -> list[dict[str, float]]:
+        """Each view's terms and their total at ``vertices`` (B, N, 3), as its own objective gives them."""
+        with torch.no_grad():
+            terms = {name: each.tolist() for name, each in self._per_view(vertices).items()}
+        each = [{name: values[b] for name, values in terms.items()} for b in range(self.views)]
+        return [{**terms, "total": sum(terms.values())} for terms in each]
+
+    def _view_of(self, vertices: torch.Tensor):
+        """The renderer's view of ``vertices`` (made at the first call, for their dtype)."""
         if self._renderer is None or self._renderer.dtype != vertices.dtype:
-            self._renderer = SteadyRenderer(self.faces, self.camera, self.adjacency, vertices.dtype)
+            self._renderer = SteadyRenderer(self.faces, self.camera, self.adjacency, vertices.dtype,
+                                            vertex_count=vertices.shape[-2])
             self._target = self._target.to(vertices.dtype)
             self._target_rows = self._target_rows.to(vertices.dtype)
             self._region = self._region.to(vertices.dtype)
-        view = self._renderer(vertices)
+            if self.views is not None:
+                self._silhouette_scale = self._silhouette_scale.to(vertices.dtype)
+        return self._renderer(vertices)
+
+    def _single(self, vertices: torch.Tensor) -> dict[str, torch.Tensor]:
+        view = self._view_of(vertices)
         pixels = self._renderer.pixels
         with torch.no_grad():
             # The covered pixels (before antialiasing) that the target covers too and, with a
@@ -98,10 +138,31 @@ class NormalMapObjective:
         terms = {"normal": normal}
         if self.silhouette_weight:
             coverage = view.blended_coverage(len(self.faces), vertices.dtype)[:pixels]
-            difference = coverage - self._target[3, :pixels]
-            if self.one_sided:
-                difference = difference.clamp_min(0.0)
-            elif self.covering:
-                difference = difference.clamp_max(0.0)
-            terms["silhouette"] = difference.square().sum() * (self.silhouette_weight / self.count)
+            terms["silhouette"] = self._silhouette_difference(coverage - self._target[3, :pixels]).square().sum() \
+                * (self.silhouette_weight / self.count)
         return terms
+
+    def _per_view(self, vertices: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Each view's terms (B,) at ``vertices`` (B, N, 3)."""
+        view = self._view_of(vertices)
+        pixels, views = self._renderer.pixels, self.views
+        with torch.no_grad():
+            target = self._target_rows.index_select(0, view.pixel).T                   # (4, M)
+            both = target[3] * self._region.index_select(0, view.face)
+            owner = self._view.index_select(0, view.pixel)                             # (M,) B: the dump
+        error = (view.blended_normals() - target[:3]).abs().sum(dim=0) * both
+        sums = error.new_zeros(2, views + 1).index_add(1, owner, torch.stack([error, both]))
+        terms = {"normal": sums[0, :views] / sums[1, :views].clamp_min(1.0)}
+        if self.silhouette_weight:
+            coverage = view.blended_coverage(self._renderer.count, vertices.dtype)[:pixels]
+            squares = self._silhouette_difference(coverage - self._target[3, :pixels]).square()
+            terms["silhouette"] = (squares * self._silhouette_scale).view(views, -1).sum(dim=1)
+        return terms
+
+    def _silhouette_difference(self, difference: torch.Tensor) -> torch.Tensor:
+        """The coverage's difference from the mask as the silhouette term counts it (its sides)."""
+        if self.one_sided:
+            return difference.clamp_min(0.0)
+        if self.covering:
+            return difference.clamp_max(0.0)
+        return difference

@@ -17,38 +17,28 @@ diverges is rerun a fit at a time.
 """
 from __future__ import annotations
 
-import time
-import warnings
-from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 import numpy as np
 import torch
 
-from statfit.core.fit import StageTimer, run_fit
-from statfit.core.methods import Fallback, batchable, build, resolve
+from statfit.core.methods import Fallback, resolve
 from statfit.core.settings import Settings
-from statfit.core.stages import Fit, PipelineResult, run_stages
+from statfit.core.stages import Fit, PipelineResult
 from statfit.core.threads import intra_op_threads
-from statfit.errors import StatfitError, one_line
+from statfit.core.together import FitOutcome, Member, fits_in_memory, run_stages_together
+from statfit.errors import StatfitError
 from statfit.model.statmodel import StatModel
 from statfit.objectives.scans import ScanBatch
 from statfit.registration.posed import FitSetup, PosedScan, model_tensors, plan_fits
 from statfit.structures.scan import MESH_SAMPLES, THIN_ABOVE, Scan, sample_size
 
-# The most fits a worker steps together by default on a GPU (issue 38's batch of 64).
-MOST_TOGETHER = 64
-
-
 def together_for(model: StatModel, device: torch.device) -> int:
     """How many scans a batch worker registers together by default: 1 on a CPU, where fits step
     together gain only what the filter's products share (docs/benchmarks.md §15) and give other
-    bytes than ``statfit register``; on a GPU, where an iteration costs its launches whatever B, as
-    many as :func:`bytes_per_fit` fits in a quarter of the card's free memory, at most MOST_TOGETHER."""
-    if device.type != "cuda":
-        return 1
-    free, _ = torch.cuda.mem_get_info(device)
-    return int(max(1, min(MOST_TOGETHER, free // 4 // bytes_per_fit(model))))
+    bytes than ``statfit register``; on a GPU as many as fit its memory
+    (:func:`statfit.core.together.fits_in_memory` of :func:`bytes_per_fit`)."""
+    return fits_in_memory(bytes_per_fit(model), device) if device.type == "cuda" else 1
 
 
 def bytes_per_fit(model: StatModel) -> int:
@@ -62,50 +52,15 @@ def bytes_per_fit(model: StatModel) -> int:
     return 4 * 40 * 3 * model.num_vertices + 6000 * points
 
 
-@dataclass
-class ScanFit:
-    """One scan's outcome in :func:`register_many`: its ``fit``, or the one-line ``error`` that
-    stopped it; the ``warnings`` it raised, in order."""
-
-    fit: Fit | None = None
-    error: str | None = None
-    warnings: list[str] = field(default_factory=list)
-
-
-class _Member:
-    """A scan's fit in a batch: its posed scan, the current pipeline's set-up and vertices, its own
-    timer and clock, what it raised."""
+class _Scan(Member):
+    """A scan's fit in a batch: besides a member's, its posed scan, the current pipeline's set-up and
+    the last pipeline's result (posed._StagesRun)."""
 
     def __init__(self, index: int):
-        self.index = index
-        self.outcome = ScanFit()
-        self.timer = StageTimer()
-        self.seconds = 0.0
+        super().__init__(index)
         self.posed: PosedScan | None = None
         self.setup: FitSetup | None = None
-        self.x: torch.Tensor | None = None
-        self.done = 0
-        self.loss: dict[str, float] = {}
-        self.run = None     # the last pipeline's result (posed._StagesRun)
-
-    @property
-    def failed(self) -> bool:
-        return self.outcome.error is not None
-
-    def alone(self, work, *args):
-        """``work(*args)`` on this fit's account: its time, its warnings; a failure becomes its error
-        (and None is returned)."""
-        started = time.perf_counter()
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            try:
-                return work(*args)
-            except Exception as error:  # noqa: BLE001 - a bug or an unforeseen input: this fit's, the others go on
-                self.outcome.error = one_line(error)
-            finally:
-                self.outcome.warnings += [str(w.message) for w in caught]
-                self.seconds += time.perf_counter() - started
-        return None
+        self.run = None
 
 
 def register_many(model: StatModel, scans: Sequence[np.ndarray | Scan], method: str = "default", *,
@@ -114,16 +69,16 @@ def register_many(model: StatModel, scans: Sequence[np.ndarray | Scan], method: 
                   trim: float = 0.05, seed: int = 0, stages: tuple[Settings, ...] | None = None,
                   region: str | None = None, threads: int | None = None, landmark_weight: float | None = None,
                   clutter: bool | None = None, fallback: Fallback | bool | None = True, **overrides: Any
-                  ) -> list[ScanFit]:
+                  ) -> list[FitOutcome]:
     """Fit ``model`` to each of ``scans`` ((M_b, 3) points or :class:`Scan`), with ``landmarks`` (one
     (L, 3) array or None per scan) and the options of :func:`statfit.registration.job.register`, the
-    gradient stages of all the fits stepped together. One :class:`ScanFit` per scan, in order; a bad
+    gradient stages of all the fits stepped together. One :class:`statfit.core.together.FitOutcome` per scan, in order; a bad
     option raises StatfitError (it would fail every fit)."""
     if landmarks is not None and len(landmarks) != len(scans):
         raise StatfitError(f"{len(scans)} scans but {len(landmarks)} landmark sets")
     plan = plan_fits(model, method, preset, stages, overrides, trim, refresh_every, landmark_weight, fallback, device,
                      threads)
-    members = [_Member(i) for i in range(len(scans))]
+    members = [_Scan(i) for i in range(len(scans))]
     with intra_op_threads(plan.threads):
         torch.manual_seed(seed)
         shared = model_tensors(model, plan.device, dtype)
@@ -156,51 +111,21 @@ def register_many(model: StatModel, scans: Sequence[np.ndarray | Scan], method: 
     return [m.outcome for m in members]
 
 
-def _fit_together(members: list[_Member], stages: tuple[Settings, ...], weight: float, warn_far: bool) -> None:
+def _fit_together(members: list[_Scan], stages: tuple[Settings, ...], weight: float, warn_far: bool) -> None:
     """Run ``stages`` on every member (its ``run`` holds the result): closed-form and unbatchable
-    stages a fit at a time, gradient stages of filtered methods together; a failed batched stage
-    is rerun a fit at a time, so that only the fits that fail alone fail."""
+    stages a fit at a time, gradient stages of filtered methods together."""
     for member in members:
         member.setup = member.alone(member.posed.setup, stages, weight, warn_far)
         if member.setup is not None:
+            member.space, member.objective = member.posed.space, member.setup.objective
             member.x, member.done, member.loss = member.setup.start, 0, {}
-    live = [m for m in members if not m.failed]
-    for settings in stages:
-        if len(live) > 1 and batchable(settings):
-            if not _stage_together(live, settings):
-                for member in live:
-                    member.alone(_stage_alone, member, settings)
-        else:
-            for member in live:
-                member.alone(_stage_alone, member, settings)
-        live = [m for m in live if not m.failed]
-    for member in live:
-        member.run = member.setup.ran(PipelineResult(member.x, member.loss, member.done))
+    run_stages_together(members, stages, _scan_batch)
+    for member in members:
+        if not member.failed:
+            member.run = member.setup.ran(PipelineResult(member.x, member.loss, member.done))
 
 
-def _stage_alone(member: _Member, settings: Settings) -> None:
-    """One stage of one fit, as ``register`` runs it."""
-    result = run_stages((settings,), member.posed.space, member.setup.objective, member.x, timer=member.timer,
-                        first_iteration=member.done)
-    member.x, member.done, member.loss = result.vertices, member.done + result.iterations, result.loss
-
-
-def _stage_together(members: list[_Member], settings: Settings) -> bool:
-    """One gradient stage of every member at once; False (the members unchanged) if it failed."""
-    started = time.perf_counter()
-    timer = StageTimer()
-    try:
-        objective = ScanBatch([m.setup.scan for m in members], [m.setup.landmarks for m in members])
-        objective.with_landmarks(settings.landmarks)
-        param, optimizer = build(settings, members[0].posed.space, torch.stack([m.x for m in members]))
-        result = run_fit(param, optimizer, objective, settings.iterations, timer=timer)
-        losses = objective.per_fit(result.vertices)
-    except Exception:  # noqa: BLE001 - rerun a fit at a time: each fails, or not, alone
-        return False
-    share = (time.perf_counter() - started) / len(members)
-    for member, x, loss in zip(members, result.vertices, losses):
-        member.x, member.done, member.loss = x, member.done + result.iterations, loss
-        member.seconds += share
-        for name, seconds in timer.seconds.items():
-            member.timer.seconds[name] += seconds / len(members)
-    return True
+def _scan_batch(members: list[_Scan], settings: Settings) -> ScanBatch:
+    """The data term of ``members`` stepped together in a stage of ``settings``."""
+    return ScanBatch([m.setup.scan for m in members], [m.setup.landmarks for m in members]
+                     ).with_landmarks(settings.landmarks)

@@ -15,6 +15,7 @@ head radius on test cases); use similarity to estimate a scale. docs/method.md h
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
@@ -33,7 +34,7 @@ from statfit.objectives.normals import SILHOUETTE_WEIGHT, NormalMapObjective
 from statfit.core.pose import camera_in_frame, fit_pose
 from statfit.core.device import resolve_device
 from statfit.renderer import Camera, MeshAdjacency, rasterize
-from statfit.core.stages import Fit, run_stages
+from statfit.core.stages import Fit, PipelineResult, run_stages
 from statfit.core.threads import choose_threads, intra_op_threads
 
 ALIGNMENTS = ("none", "rigid", "similarity")
@@ -93,7 +94,10 @@ def camera_space_normals(normal_map: NormalMap, camera: Camera, space: str = "wo
 
 def check_framing(template: np.ndarray, camera: Camera, mask: np.ndarray, align: str) -> None:
     """Refuse a model that lies behind the camera, or whose image is far larger or smaller than
-    the target's silhouette (different units?) unless the alignment estimates a scale."""
+    the target's silhouette (different units?) unless the alignment estimates a scale; refuse an
+    empty mask."""
+    if not mask.any():
+        raise StatfitError("the normal map's mask has no foreground pixel")
     pixels, depth = camera.project(torch.as_tensor(template, dtype=torch.float64))
     if float(depth.median()) <= 0:
         raise StatfitError("the model lies behind the camera: are the model and the camera in the same frame "
@@ -179,33 +183,71 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
     one way (:func:`one_sided_silhouette`), else two-sided (a map cannot tell a cut outline from the
     subject's: docs/studies.md §24).
     """
-    sides = silhouette_sides(silhouette, model)
-    one_sided, covering = sides == "one-sided", sides == "covering"
+    stages = checked_stages(model, align, silhouette, silhouette_weight, stages, method, preset, region, overrides)
+    torch_device = resolve_device(device, "render")
+    threads = choose_threads(model.basis.size + RENDER_FLOATS_PER_PIXEL * normal_map.mask.size, threads)
+    with intra_op_threads(threads):
+        torch.manual_seed(seed)
+        started = time.perf_counter()
+        timer = timer or StageTimer.for_device(torch_device)
+        view = PosedView.of(model, normal_map, camera, torch_device, dtype, normal_space=normal_space,
+                            normal_convention=normal_convention, align=align, init=init,
+                            silhouette_weight=silhouette_weight, silhouette=silhouette, region=region, timer=timer)
+        snapshot = None if on_snapshot is None else lambda it, x: on_snapshot(it, view.to_world(x))
+        result = run_stages(stages, view.space, view.objective, view.start, on_record=on_record,
+                            on_snapshot=snapshot, timer=timer)
+        return view.fitted(result, stages, time.perf_counter() - started, timer, threads)
+
+
+def checked_stages(model: StatModel, align: str, silhouette: str, silhouette_weight: float,
+             stages: tuple[Settings, ...] | None, method: str, preset: str, region: str | None,
+             overrides: dict[str, Any]) -> tuple[Settings, ...]:
+    """The options every view's fit shares, checked; the stages."""
+    silhouette_sides(silhouette, model)
     if align not in ALIGNMENTS:
         raise StatfitError(f"unknown alignment {align!r}; choose one of {', '.join(ALIGNMENTS)}")
     if not (np.isfinite(silhouette_weight) and silhouette_weight >= 0):
         raise StatfitError(f"silhouette_weight must be a finite number ≥ 0, got {silhouette_weight}")
-    stages = stages or render_stages(method, preset, region, **overrides)
-    torch_device = resolve_device(device, "render")
-    work = model.basis.size + RENDER_FLOATS_PER_PIXEL * normal_map.mask.size
-    threads = choose_threads(work, threads)
-    with intra_op_threads(threads):
-        torch.manual_seed(seed)
-        started = time.perf_counter()
+    return stages or render_stages(method, preset, region, **overrides)
+
+
+@dataclass
+class PosedView:
+    """A normal map's fit set up in the model's unit frame (after the alignment): the fit space,
+    the data term and the start (N, 3); the map's target normals (H, W, 3) and mask (H, W) on the
+    device, the camera with the pose folded in, and what the term was made with (``options``), so
+    that views of one model can be fitted together (:mod:`statfit.render.many`)."""
+
+    space: FitSpace
+    objective: NormalMapObjective
+    start: torch.Tensor
+    frame: Frame
+    pose: Similarity
+    target: torch.Tensor
+    mask: torch.Tensor
+    camera: Camera
+    options: dict[str, Any]
+
+    @classmethod
+    def of(cls, model: StatModel, normal_map: NormalMap, camera: Camera, device: torch.device, dtype: torch.dtype, *,
+           normal_space: str = "world", normal_convention: str = "opencv", align: str = "rigid",
+           init: np.ndarray | None = None, silhouette_weight: float = SILHOUETTE_WEIGHT, silhouette: str = "auto",
+           region: str | None = None, timer: StageTimer | None = None) -> PosedView:
+        """Check the map and the framing, find the pose (``align``) and set up the data term."""
+        sides = silhouette_sides(silhouette, model)
+        one_sided, covering = sides == "one-sided", sides == "covering"
+        timer = timer or StageTimer.for_device(device)
         start_shape = model.template if init is None else _checked_init(init, model)
         check_framing(start_shape, camera, normal_map.mask, align)
         frame = Frame.of(model.template)
-        space = FitSpace.of(model, frame, torch_device, dtype)
+        space = FitSpace.of(model, frame, device, dtype)
         target = torch.as_tensor(camera_space_normals(normal_map, camera, normal_space, normal_convention),
-                                 dtype=dtype, device=torch_device)
-        mask = torch.as_tensor(normal_map.mask, device=torch_device)
-        faces = torch.as_tensor(model.faces, dtype=torch.long, device=torch_device)
-        x0 = torch.as_tensor(frame.to_unit(start_shape), dtype=dtype, device=torch_device)
-
-        region_faces = None if region is None else torch.as_tensor(region_triangles(model, region),
-                                                                   device=torch_device)
+                                 dtype=dtype, device=device)
+        mask = torch.as_tensor(normal_map.mask, device=device)
+        faces = torch.as_tensor(model.faces, dtype=torch.long, device=device)
+        x0 = torch.as_tensor(frame.to_unit(start_shape), dtype=dtype, device=device)
+        region_faces = None if region is None else torch.as_tensor(region_triangles(model, region), device=device)
         adjacency = MeshAdjacency.from_faces(faces)
-        timer = timer or StageTimer.for_device(torch_device)
         pose = Similarity()
         if align != "none":
             with timer("alignment"):
@@ -214,19 +256,23 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
                 coarse = NormalMapObjective(*downsampled(target, mask, unit_camera, ALIGN_SIZE), faces,
                                             silhouette_weight, adjacency, one_sided=one_sided, covering=covering)
                 pose, x0 = _align(x0, coarse, space, guess, align == "similarity", unit_camera.rotation[2].to(dtype))
-        objective = NormalMapObjective(target, mask, camera_in_frame(camera, frame, pose), faces,
-                                       silhouette_weight if region is None else 0.0, adjacency, region_faces,
-                                       one_sided, covering)
-        def to_world(x: torch.Tensor) -> np.ndarray:
-            return frame.from_unit(pose.apply(x.detach().cpu().double().numpy()))
+        posed_camera = camera_in_frame(camera, frame, pose)
+        options = dict(faces=faces, silhouette_weight=silhouette_weight if region is None else 0.0,
+                       adjacency=adjacency, region_faces=region_faces, one_sided=one_sided, covering=covering)
+        objective = NormalMapObjective(target, mask, posed_camera, **options)
+        return cls(space, objective, x0, frame, pose, target, mask, posed_camera, options)
 
-        snapshot = None if on_snapshot is None else lambda it, x: on_snapshot(it, to_world(x))
-        result = run_stages(stages, space, objective, x0, on_record=on_record, on_snapshot=snapshot, timer=timer)
-        vertices = to_world(result.vertices)
-        to_unit = Similarity(1.0 / frame.scale, np.eye(3), -frame.center / frame.scale)
-        from_unit = Similarity(frame.scale, np.eye(3), frame.center)
-        return Fit(vertices, compose(from_unit, compose(pose, to_unit)), stages, result.loss,
-                              time.perf_counter() - started, dict(timer.seconds), result.iterations, threads=threads)
+    def to_world(self, x: torch.Tensor) -> np.ndarray:
+        """Unit-frame vertices (N, 3) in the world frame (float64)."""
+        return self.frame.from_unit(self.pose.apply(x.detach().cpu().double().numpy()))
+
+    def fitted(self, result: PipelineResult, stages: tuple[Settings, ...], seconds: float, timer: StageTimer,
+               threads: int) -> Fit:
+        """The fit that ``result`` (from ``start``) is, in the world frame."""
+        to_unit = Similarity(1.0 / self.frame.scale, np.eye(3), -self.frame.center / self.frame.scale)
+        from_unit = Similarity(self.frame.scale, np.eye(3), self.frame.center)
+        return Fit(self.to_world(result.vertices), compose(from_unit, compose(self.pose, to_unit)), stages,
+                   result.loss, seconds, dict(timer.seconds), result.iterations, threads=threads)
 
 
 def silhouette_sides(silhouette: str, model: StatModel) -> str:

@@ -32,13 +32,14 @@ rounding (float64: within 1e-10, gradients included: tests/test_steady_renderer.
 from __future__ import annotations
 
 import math
+from typing import Sequence
 
 import torch
 
 from statfit.renderer.raster import _EMPTY, _row_span
-from statfit.renderer.silhouette import _EPS, MeshAdjacency
+from statfit.renderer.silhouette import MeshAdjacency
 from statfit.renderer.steady_parts import (SteadyView, _CrossingWeights, _PixelNormals, _silhouette_flags,
-                                           _vertex_normals)
+                                           _vertex_normals, mesh_copies, walk_to_silhouette)
 from statfit.structures.camera import Camera
 
 MARGIN = 1.25       # buffer size / need at sizing
@@ -55,23 +56,37 @@ class SteadyRenderer:
     with vertices (N, 3) → :class:`SteadyView`.
     """
 
-    def __init__(self, faces: torch.Tensor, camera: Camera, adjacency: MeshAdjacency, dtype: torch.dtype,
-                 near: float = 1e-3):
+    def __init__(self, faces: torch.Tensor, camera: Camera | Sequence[Camera], adjacency: MeshAdjacency,
+                 dtype: torch.dtype, near: float = 1e-3, vertex_count: int | None = None):
+        cameras = [camera] if isinstance(camera, Camera) else list(camera)
+        height, width = cameras[0].height, cameras[0].width
+        if any((each.height, each.width) != (height, width) for each in cameras):
+            raise ValueError("the views rendered together must have one image size")
+        views = len(cameras)
+        if views > 1:
+            if vertex_count is None:
+                raise ValueError("several views need the vertex count of one mesh")
+            faces, adjacency = mesh_copies(faces, adjacency, views, vertex_count)
         device = faces.device
-        self.device, self.dtype, self.near = device, dtype, near
-        height, width = camera.height, camera.width
+        self.device, self.dtype, self.near, self.views = device, dtype, near, views
         self.height, self.width = height, width
         self.stride = stride = width + 2
-        self.pixels = pixels = (height + 2) * stride                  # padded image; slot ``pixels``: dump
+        self.view_pixels = view_pixels = (height + 2) * stride          # one padded image
+        self.pixels = pixels = views * view_pixels                      # the images stacked; slot ``pixels``: dump
         count = len(faces)
         self.count = count
         long = dict(dtype=torch.long, device=device)
-        pose = camera.world_to_camera.to(device=device, dtype=dtype)
-        K = camera.K.to(device=device, dtype=dtype)
-        self._rotation_t = pose[:3, :3].T.contiguous()
-        self._translation = pose[:3, 3].contiguous()
-        self._focal_t = K[:2, :2].T.contiguous()
-        self._principal = K[:2, 2].contiguous()
+        pose = torch.stack([each.world_to_camera for each in cameras]).to(device=device, dtype=dtype)
+        K = torch.stack([each.K for each in cameras]).to(device=device, dtype=dtype)
+        self._rotation_t = pose[:, :3, :3].transpose(1, 2).contiguous()                  # (B, 3, 3)
+        self._translation = pose[:, None, :3, 3].contiguous()                            # (B, 1, 3)
+        self._focal_t = K[:, :2, :2].transpose(1, 2).contiguous()                        # (B, 2, 2)
+        self._principal = K[:, None, :2, 2].contiguous()                                 # (B, 1, 2)
+        if views == 1:
+            self._rotation_t, self._translation = self._rotation_t[0], self._translation[0, 0]
+            self._focal_t, self._principal = self._focal_t[0], self._principal[0, 0]
+        # The padded first pixel of each triangle's view (B > 1): its image's offset in the stack.
+        self._view_origin = (torch.arange(views, **long) * view_pixels).repeat_interleave(count // views)
         self._last_pixel = torch.tensor([[width - 1], [height - 1]], dtype=dtype, device=device)
         corners = faces.T.reshape(-1)
         self._corners = corners                                        # (3F,) corner-major
@@ -89,7 +104,8 @@ class SteadyRenderer:
         self._ring = torch.cat([torch.arange(count + 1, **long)[:, None], neighbor, second], dim=1).contiguous()
         self.extent = extent = pixels + stride + 1                      # the dump slot's neighbours too
         index = torch.arange(extent, **long)
-        col, row = index % stride - 1, index // stride - 1
+        local = index - (index // view_pixels).clamp_max_(views - 1) * view_pixels     # within its view's image
+        col, row = local % stride - 1, local // stride - 1
         self._centre = torch.stack([col, row]).to(dtype) + 0.5         # (2, extent)
         self._in_image = (col >= 0) & (col < width) & (row >= 0) & (row < height)
         self._pixel_index = index
@@ -148,9 +164,7 @@ class SteadyRenderer:
 
     def __call__(self, vertices: torch.Tensor) -> SteadyView:
         count = self.count
-        camera_points = torch.addmm(self._translation, vertices, self._rotation_t)       # (N, 3)
-        depth = camera_points[:, 2:]
-        screen = camera_points[:, :2].mm(self._focal_t) / depth + self._principal        # (N, 2)
+        camera_points, depth, screen = self._project(vertices)
         normals = _vertex_normals(camera_points, self._corners)                          # (3, N)
         with torch.no_grad():
             table = torch.cat([screen, depth], dim=1).T                                  # (3, N)
@@ -183,6 +197,18 @@ class SteadyRenderer:
         with torch.no_grad():
             slot = slot.index_select(0, torch.cat([target, source])).view(2, -1)         # dump: M
         return SteadyView(pixel, face, triangle, pixel_normals, target, source, weight, slot)
+
+    def _project(self, vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Camera-space points (V, 3), their depths (V, 1) and pixel positions (V, 2) of ``vertices``
+        (N, 3), or (B, N, 3) for B views (then V = BN, view-major)."""
+        if self.views == 1:
+            camera_points = torch.addmm(self._translation, vertices, self._rotation_t)
+            depth = camera_points[:, 2:]
+            return camera_points, depth, camera_points[:, :2].mm(self._focal_t) / depth + self._principal
+        camera_points = torch.baddbmm(self._translation, vertices, self._rotation_t)    # (B, N, 3)
+        depth = camera_points[..., 2:]
+        screen = camera_points[..., :2].bmm(self._focal_t) / depth + self._principal
+        return camera_points.view(-1, 3), depth.reshape(-1, 1), screen.view(-1, 2)
 
     def _select(self, flags: torch.Tensor, name: str) -> tuple[torch.Tensor, torch.Tensor]:
         """The indices of the set ``flags`` (L,) bool, ascending, in a buffer of slots (past the
@@ -233,6 +259,8 @@ class SteadyRenderer:
         # Rows: the planes' values at the row's first pixel and their x slopes, 1/z's too.
         owner, dy, rows_need = self._owners(rows, "rows")
         origin = first[1].long() * self.stride + first[0].long() + (self.stride + 1)   # padded first pixel
+        if self.views > 1:
+            origin += self._view_origin
         integers = torch.nn.functional.pad(torch.stack([cols, origin]), (0, 1))
         floats = torch.nn.functional.pad(planes.view(9, count), (0, 1))
         width, origin = integers.index_select(1, owner)
@@ -293,46 +321,9 @@ class SteadyRenderer:
         direction = self._direction.index_select(0, direction_id)
         start = face.index_select(0, m)
         centre = self._centre.index_select(1, inner)                                    # (2, K)
-        triangle, edge, hit = self._walk(start, centre, axis, direction, *walk)
+        triangle, edge, hit = walk_to_silhouette(self._ring, count, start, centre, axis, direction, *walk)
         hit &= chosen < lanes
         return (inner, outer, axis, direction, centre, triangle, edge, hit), torch.stack([edges_need, running[-1]])
-
-    def _walk(self, start: torch.Tensor, centre: torch.Tensor, axis: torch.Tensor, direction: torch.Tensor,
-              corner_table: torch.Tensor, fact_table: torch.Tensor
-              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Follow each pair's segment from its foreground pixel centre through up to 3 triangles to
-        the first silhouette edge (as ``silhouette._walk``), evaluating the 13 triangles within two
-        edge steps of the start at once. Returns the triangle and edge crossed and whether one of the
-        pair's direction class was found (K,). corner_table: (6, F+1) corner x, y; fact_table: (3, F+1)
-        int32 per edge: the neighbour across it × 4 + 2 h + v (the silhouette flags). No gradient."""
-        count = self.count
-        ring = self._ring.index_select(0, start)                                        # (K, 13)
-        corners = corner_table.index_select(1, ring.view(-1)).view(2, 3, *ring.shape)
-        rel = corners - centre[:, None, :, None]                                        # (2, 3, K, 13)
-        horizontal = (axis == 0)[:, None]
-        frame = torch.where(horizontal, rel, rel.flip(0))                               # along, across
-        frame_j, frame_k = frame.roll(-1, 1), frame.roll(-2, 1)
-        aj, bj, ak, bk = frame_j[0], frame_j[1], frame_k[0], frame_k[1]
-        crosses = torch.signbit(bj) != torch.signbit(bk)
-        position = direction[:, None] * (aj * bk - ak * bj) / torch.where(crosses, bk - bj, 1.0)
-        position, edge = torch.where(crosses, position, -torch.inf).max(dim=0)          # (K, 13)
-        leaves = (position > -_EPS) & (position < 1 + _EPS)
-        facts = fact_table.index_select(1, ring.view(-1)).view(3, *ring.shape).gather(0, edge[None])[0]
-        stop = leaves & ((facts & 3) != 0)
-        state = torch.stack([stop & ((facts >> torch.where(horizontal, 1, 0)) & 1 != 0),  # found here
-                             leaves & ~stop & (facts < 4 * count), edge])               # walk on; edge
-        first = state[:, :, 0]                                                          # (3, K)
-        node = first[2] + 1
-        second = state.gather(2, node[None, :, None].expand(3, -1, 1)).squeeze(2)
-        node2 = first[2] * 3 + second[2] + 4
-        third = state.gather(2, node2[None, :, None].expand(3, -1, 1)).squeeze(2)
-        first, second, third = first != 0, second != 0, third != 0
-        at_second = first[1] & second[0]
-        at_third = first[1] & second[1] & third[0]
-        which = torch.where(first[0], 0, torch.where(at_second, node, node2))
-        triangle = ring.gather(1, which[:, None]).squeeze(1)
-        edge = edge.gather(1, which[:, None]).squeeze(1)
-        return triangle, edge, first[0] | at_second | at_third
 
     def _crossings(self, screen: torch.Tensor, pairs: tuple[torch.Tensor, ...]
                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -345,3 +336,4 @@ class SteadyRenderer:
             target = torch.where(hit, torch.where(near_inner, inner, outer), self.pixels)
             source = torch.where(near_inner, outer, inner)
         return target, source, weight
+

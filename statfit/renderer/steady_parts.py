@@ -1,10 +1,13 @@
 """The pieces of :class:`statfit.renderer.steady.SteadyRenderer` with gradients: per-pixel normals and
 silhouette crossing weights with hand-written backward passes, the view it returns and its blends,
-vertex normals and silhouette flags.
+vertex normals and silhouette flags; the walk from a pixel pair to its silhouette edge; the copies of
+a mesh that one renderer draws for many views.
 """
 from __future__ import annotations
 
 import torch
+
+from statfit.renderer.silhouette import _EPS, MeshAdjacency
 
 
 class _PixelNormals(torch.autograd.Function):
@@ -165,3 +168,53 @@ class _BlendColumns(torch.autograd.Function):
         share = weight * grad_target
         grad_values = grad.index_add(1, torch.cat([source, target]), torch.cat([share, -share], dim=1))
         return grad_values, None, None, (grad_target * difference).sum(dim=0)
+
+
+def walk_to_silhouette(ring_table: torch.Tensor, count: int, start: torch.Tensor, centre: torch.Tensor,
+                       axis: torch.Tensor, direction: torch.Tensor, corner_table: torch.Tensor, fact_table: torch.Tensor
+                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Follow each pair's segment from its foreground pixel centre through up to 3 triangles to
+    the first silhouette edge (as ``silhouette._walk``), evaluating the 13 triangles within two
+    edge steps of the start at once. Returns the triangle and edge crossed and whether one of the
+    pair's direction class was found (K,). ring_table: (F+1, 13) the triangles within two edge
+    steps of each (``SteadyRenderer._ring``); count: F; corner_table: (6, F+1) corner x, y;
+    fact_table: (3, F+1) int32 per edge: the neighbour across it × 4 + 2 h + v (the silhouette
+    flags). No gradient."""
+    ring = ring_table.index_select(0, start)                                        # (K, 13)
+    corners = corner_table.index_select(1, ring.view(-1)).view(2, 3, *ring.shape)
+    rel = corners - centre[:, None, :, None]                                        # (2, 3, K, 13)
+    horizontal = (axis == 0)[:, None]
+    frame = torch.where(horizontal, rel, rel.flip(0))                               # along, across
+    frame_j, frame_k = frame.roll(-1, 1), frame.roll(-2, 1)
+    aj, bj, ak, bk = frame_j[0], frame_j[1], frame_k[0], frame_k[1]
+    crosses = torch.signbit(bj) != torch.signbit(bk)
+    position = direction[:, None] * (aj * bk - ak * bj) / torch.where(crosses, bk - bj, 1.0)
+    position, edge = torch.where(crosses, position, -torch.inf).max(dim=0)          # (K, 13)
+    leaves = (position > -_EPS) & (position < 1 + _EPS)
+    facts = fact_table.index_select(1, ring.view(-1)).view(3, *ring.shape).gather(0, edge[None])[0]
+    stop = leaves & ((facts & 3) != 0)
+    state = torch.stack([stop & ((facts >> torch.where(horizontal, 1, 0)) & 1 != 0),  # found here
+                         leaves & ~stop & (facts < 4 * count), edge])               # walk on; edge
+    first = state[:, :, 0]                                                          # (3, K)
+    node = first[2] + 1
+    second = state.gather(2, node[None, :, None].expand(3, -1, 1)).squeeze(2)
+    node2 = first[2] * 3 + second[2] + 4
+    third = state.gather(2, node2[None, :, None].expand(3, -1, 1)).squeeze(2)
+    first, second, third = first != 0, second != 0, third != 0
+    at_second = first[1] & second[0]
+    at_third = first[1] & second[1] & third[0]
+    which = torch.where(first[0], 0, torch.where(at_second, node, node2))
+    triangle = ring.gather(1, which[:, None]).squeeze(1)
+    edge = edge.gather(1, which[:, None]).squeeze(1)
+    return triangle, edge, first[0] | at_second | at_third
+
+
+def mesh_copies(faces: torch.Tensor, adjacency: MeshAdjacency, copies: int, vertex_count: int
+            ) -> tuple[torch.Tensor, MeshAdjacency]:
+    """The faces (BF, 3) and adjacency of ``copies`` disjoint copies of a mesh of ``vertex_count``
+    vertices, copy b's vertices at b·N (its faces at b·F)."""
+    vertex_shift = torch.arange(copies, device=faces.device)[:, None, None] * vertex_count
+    face_shift = torch.arange(copies, device=faces.device)[:, None, None] * len(faces)
+    neighbor = torch.where(adjacency.neighbor < 0, -1, adjacency.neighbor + face_shift)
+    return ((faces + vertex_shift).view(-1, 3),
+            MeshAdjacency((adjacency.opposite + vertex_shift).view(-1, 3), neighbor.view(-1, 3)))

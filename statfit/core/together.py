@@ -1,0 +1,123 @@
+"""Many fits of one model in one program: each fit keeps its own set-up, clock, warnings and
+failures; the gradient stages that can be batched (:func:`statfit.core.methods.batchable`) step all
+the fits at once, vertices (B, N, 3), against one data term over the B inputs.
+
+A job that fits many inputs (``register_many``, ``reconstruct_many``) makes a :class:`Member` per
+input, sets its ``space``, ``objective`` and start ``x`` alone (:meth:`Member.alone`: a failure is
+that fit's one line), then calls :func:`run_stages_together` with a maker of the batched term. A
+batched stage that fails is rerun a fit at a time, so only the fits that fail alone fail.
+"""
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+from typing import Any, Callable, Sequence
+
+import torch
+
+from statfit.core.fit import StageTimer, run_fit
+from statfit.core.methods import batchable, build
+from statfit.core.settings import FitSpace, Settings
+from statfit.core.stages import Fit, run_stages
+from statfit.errors import one_line
+
+
+# The most fits a batch worker steps together by default on a GPU (issue 38's batch of 64).
+MOST_TOGETHER = 64
+
+
+def fits_in_memory(bytes_per_fit: int, device: torch.device) -> int:
+    """How many fits of ``bytes_per_fit`` each a quarter of ``device``'s free memory holds (a GPU,
+    where an iteration costs its launches whatever the number of fits), at least 1 and at most
+    :data:`MOST_TOGETHER`."""
+    free, _ = torch.cuda.mem_get_info(device)
+    return int(max(1, min(MOST_TOGETHER, free // 4 // bytes_per_fit)))
+
+
+@dataclass
+class FitOutcome:
+    """One input's outcome in a fit of many: its ``fit``, or the one-line ``error`` that stopped it;
+    the ``warnings`` it raised, in order."""
+
+    fit: Fit | None = None
+    error: str | None = None
+    warnings: list[str] = field(default_factory=list)
+
+
+class Member:
+    """One input's fit among many: its outcome, timer and clock; its fit space, data term, current
+    vertices ``x`` (N, 3), iterations done and last terms, set by the job."""
+
+    def __init__(self, index: int):
+        self.index = index
+        self.outcome = FitOutcome()
+        self.timer = StageTimer()
+        self.seconds = 0.0
+        self.space: FitSpace | None = None
+        self.objective: Any = None
+        self.x: torch.Tensor | None = None
+        self.done = 0
+        self.loss: dict[str, float] = {}
+
+    @property
+    def failed(self) -> bool:
+        return self.outcome.error is not None
+
+    def alone(self, work: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+        """``work(*args, **kwargs)`` on this fit's account: its time, its warnings; a failure becomes its error
+        (and None is returned)."""
+        started = time.perf_counter()
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
+                return work(*args, **kwargs)
+            except Exception as error:  # noqa: BLE001 - a bug or an unforeseen input: this fit's, the others go on
+                self.outcome.error = one_line(error)
+            finally:
+                self.outcome.warnings += [str(w.message) for w in caught]
+                self.seconds += time.perf_counter() - started
+        return None
+
+
+BatchedTerm = Callable[[Sequence[Member], Settings], Any]
+
+
+def run_stages_together(members: Sequence[Member], stages: Sequence[Settings], batched_term: BatchedTerm) -> None:
+    """Run ``stages`` on every member that has not failed, from its ``x``: batchable stages of two
+    or more fits together against ``batched_term(members, settings)`` (an objective over (B, N, 3)
+    vertices with ``per_fit``), the others a fit at a time; a batched stage that fails is rerun a
+    fit at a time. Each member's ``x``, ``done`` and ``loss`` move on."""
+    live = [m for m in members if not m.failed]
+    for settings in stages:
+        if not (len(live) > 1 and batchable(settings) and _stage_together(live, settings, batched_term)):
+            for member in live:
+                member.alone(_stage_alone, member, settings)
+        live = [m for m in live if not m.failed]
+
+
+def _stage_alone(member: Member, settings: Settings) -> None:
+    """One stage of one fit, as the job alone runs it."""
+    result = run_stages((settings,), member.space, member.objective, member.x, timer=member.timer,
+                        first_iteration=member.done)
+    member.x, member.done, member.loss = result.vertices, member.done + result.iterations, result.loss
+
+
+def _stage_together(members: Sequence[Member], settings: Settings, batched_term: BatchedTerm) -> bool:
+    """One gradient stage of every member at once; False (the members unchanged) if it failed."""
+    started = time.perf_counter()
+    timer = StageTimer()
+    try:
+        objective = batched_term(members, settings)
+        param, optimizer = build(settings, members[0].space, torch.stack([m.x for m in members]))
+        result = run_fit(param, optimizer, objective, settings.iterations, timer=timer)
+        losses = objective.per_fit(result.vertices)
+    except Exception:  # noqa: BLE001 - rerun a fit at a time: each fails, or not, alone
+        return False
+    share = (time.perf_counter() - started) / len(members)
+    for member, x, loss in zip(members, result.vertices, losses):
+        member.x, member.done, member.loss = x, member.done + result.iterations, loss
+        member.seconds += share
+        for name, seconds in timer.seconds.items():
+            member.timer.seconds[name] += seconds / len(members)
+    return True
