@@ -34,7 +34,7 @@ from statfit.structures.normal_map import NormalMap
 
 def together_for(model: StatModel, pixels: int, device: torch.device) -> int:
     """How many normal maps of ``pixels`` pixels a batch worker fits together by default: 1 on a
-    CPU (the bytes of ``statfit render``; fits together are ~0.7× the time there: docs/benchmarks.md
+    CPU (the bytes of ``statfit render``; fits together take 0.96× the time there: docs/benchmarks.md
     §15); on a GPU as many as fit its memory (:func:`statfit.core.together.fits_in_memory` of
     :func:`bytes_per_fit`)."""
     return fits_in_memory(bytes_per_fit(model, pixels), device) if device.type == "cuda" else 1
