@@ -14,7 +14,9 @@ difference over the iterations between); the set-up (the 50-iteration run less i
 pose search, factorisations, model to the device); torch ops and host waits per iteration of each
 job's loop (counted with a dispatch mode, as ``../shared/tools/sync_count.py`` counts them); and
 fits per second over a run of scans, one after another and together (``register_many``: the
-gradient stage of all stepped as one, with its ops per iteration for 8 fits). A warm-up fit runs first (CUDA's start). With
+gradient stage of all stepped as one, with its ops per iteration for 8 fits), and over ICT normal maps
+(paper ``statistical``'s loop without alignment, 4 maps one after another, 16 together by
+``reconstruct_many``; ops per iteration for 8). A warm-up fit runs first (CUDA's start). With
 ``--device cpu`` the same numbers on one CPU thread, for the ratio measured on the same machine.
 The ICT data must be at ../shared/data/ict-face.
 """
@@ -33,6 +35,8 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+RENDER_TOGETHER_ITERATIONS = 300    # the maps' fits timed one after another and together
 
 WAITING = ("_local_scalar_dense", "nonzero", "masked_select", "_unique", "unique_consecutive", "unique_dim",
            "repeat_interleave", "equal", "is_nonzero", "masked_scatter")
@@ -169,6 +173,7 @@ def main() -> None:
     from statfit.renderer.images import render_target
     from statfit.core.fit import StageTimer
     from statfit.registration.many import register_many
+    from statfit.render.many import reconstruct_many
 
     rows: dict[str, object] = {"device": torch.cuda.get_device_name() if device == "cuda" else "cpu (1 thread)",
                                "torch": torch.__version__}
@@ -235,6 +240,30 @@ def main() -> None:
     rows["register together, 8 fits: ops/it"], rows["register together, 8 fits: waits/it"] = per_iteration(
         lambda it: register_many(embedded, [points] * 8, "statistical", preset="paper", align="none", device=device,
                                  iterations=it)[0].fit.iterations)
+    save(rows, args.out)
+
+    # Many maps: the steady loop's throughput (paper statistical, RENDER_TOGETHER_ITERATIONS, no alignment).
+    size, alone_count, together_count = (128, 2, 4) if args.quick else (512, 4, 16)
+    maps, cameras = [], []
+    for seed in range(together_count):
+        person = sample_target(ict, np.random.default_rng(300 + seed))
+        cameras.append(camera_for_view(person, 15.0 * (seed % 5 - 2), 0.0, size))
+        maps.append(NormalMap(*render_target(person, ict.faces, cameras[-1])))
+    steady = dict(preset="paper", align="none", iterations=RENDER_TOGETHER_ITERATIONS, device=device)
+    synchronize(device)
+    start = time.perf_counter()
+    for one_map, one_camera in zip(maps[:alone_count], cameras[:alone_count]):
+        statfit.reconstruct(ict, one_map, one_camera, "statistical", **steady)
+    synchronize(device)
+    label = f"render paper statistical, {RENDER_TOGETHER_ITERATIONS} iterations at {size}², no alignment"
+    rows[f"{label}, one after another: fits/s"] = alone_count / (time.perf_counter() - start)
+    start = time.perf_counter()
+    reconstruct_many(ict, maps, cameras, "statistical", **steady)
+    synchronize(device)
+    rows[f"{label}, {together_count} together (reconstruct_many): fits/s"] = together_count / (time.perf_counter() - start)
+    rows["render together, 8 fits: ops/it"], rows["render together, 8 fits: waits/it"] = per_iteration(
+        lambda it: reconstruct_many(embedded, [normal_map] * 8, [camera] * 8, "statistical",
+                                    preset="paper", align="none", device=device, iterations=it)[0].fit.iterations)
     save(rows, args.out)
 
     for name, (make, method, preset, graphs_on, whole, overrides) in jobs.items():
