@@ -200,9 +200,10 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
 
 
 def checked_stages(model: StatModel, align: str, silhouette: str, silhouette_weight: float,
-             stages: tuple[Settings, ...] | None, method: str, preset: str, region: str | None,
-             overrides: dict[str, Any]) -> tuple[Settings, ...]:
-    """The options every view's fit shares, checked; the stages."""
+                   stages: tuple[Settings, ...] | None, method: str, preset: str, region: str | None,
+                   overrides: dict[str, Any]) -> tuple[Settings, ...]:
+    """The stages of a render fit (``stages``, or ``method``'s), its options that every map's fit
+    shares checked first (StatfitError)."""
     silhouette_sides(silhouette, model)
     if align not in ALIGNMENTS:
         raise StatfitError(f"unknown alignment {align!r}; choose one of {', '.join(ALIGNMENTS)}")

@@ -54,6 +54,11 @@ class SteadyRenderer:
 
     faces: (F, 3) long; adjacency: ``MeshAdjacency.from_faces(faces)``; dtype: the vertices'. Call
     with vertices (N, 3) → :class:`SteadyView`.
+
+    With B cameras of one image size (and ``vertex_count`` N), B meshes of one topology in one call:
+    vertices (B, N, 3), each drawn in its own camera into its own image, the B padded images stacked
+    (mesh b's triangles are b·F + its own, its image's padded pixels b·``view_pixels`` + its own),
+    so every buffer, op and launch serves all B views.
     """
 
     def __init__(self, faces: torch.Tensor, camera: Camera | Sequence[Camera], adjacency: MeshAdjacency,
