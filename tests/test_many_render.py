@@ -103,6 +103,25 @@ def test_maps_fitted_together_are_each_fitted_as_alone(embedded_model, views, me
         assert set(fitted.fit.loss) == {"normal", "silhouette", "total"}
 
 
+def test_maps_of_a_face_mask_model_in_millimetres_are_fitted_together_as_alone(embedded_model):
+    """Another model family's shape: the embedded head's face region alone, in mm (``auto`` gives it
+    the one-sided silhouette); maps fitted together end where each fit alone ends (float64)."""
+    from statfit.model.cut import region_part, rescaled
+
+    mask_model = rescaled(region_part(embedded_model, "face"), 1000.0)
+    rng = np.random.default_rng(2)
+    maps, cameras = [], []
+    for yaw in (-20.0, 0.0, 25.0):
+        shape = mask_model.sample(rng, 1.0)
+        cameras.append(camera_for_view(shape, yaw, 0.0, 64))
+        maps.append(NormalMap(*render_target(shape, mask_model.faces, cameras[-1])))
+    options = dict(preset="paper", iterations=20, dtype=torch.float64, align="none")
+    together = reconstruct_many(mask_model, maps, cameras, "hybrid", **options)
+    for normal_map, camera, fitted in zip(maps, cameras, together):
+        alone = reconstruct(mask_model, normal_map, camera, "hybrid", **options)
+        np.testing.assert_allclose(fitted.fit.vertices, alone.vertices, rtol=0, atol=1e-9)
+
+
 def test_a_render_iteration_launches_one_fit_s_ops_for_many(embedded_model, views):
     """Ops per iteration of paper statistical for 1 and 6 maps together: about one fit's (+ 60),
     and no host wait."""
