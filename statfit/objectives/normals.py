@@ -110,8 +110,8 @@ class NormalMapObjective:
         """Each view's terms and their total at ``vertices`` (B, N, 3), as its own objective gives them."""
         with torch.no_grad():
             terms = {name: each.tolist() for name, each in self._per_view(vertices).items()}
-        each = [{name: values[b] for name, values in terms.items()} for b in range(self.views)]
-        return [{**terms, "total": sum(terms.values())} for terms in each]
+        views = [{name: values[b] for name, values in terms.items()} for b in range(self.views)]
+        return [{**view, "total": sum(view.values())} for view in views]
 
     def _view_of(self, vertices: torch.Tensor):
         """The renderer's view of ``vertices`` (made at the first call, for their dtype)."""
@@ -125,14 +125,17 @@ class NormalMapObjective:
                 self._silhouette_scale = self._silhouette_scale.to(vertices.dtype)
         return self._renderer(vertices)
 
+    def _covered(self, view) -> tuple[torch.Tensor, torch.Tensor]:
+        """The target's rows (4, M) at the view's covered pixels (before antialiasing), and whether
+        the target covers them too and, with a region, they show one of its triangles (M,)."""
+        with torch.no_grad():
+            target = self._target_rows.index_select(0, view.pixel).T
+            return target, target[3] * self._region.index_select(0, view.face)
+
     def _single(self, vertices: torch.Tensor) -> dict[str, torch.Tensor]:
         view = self._view_of(vertices)
         pixels = self._renderer.pixels
-        with torch.no_grad():
-            # The covered pixels (before antialiasing) that the target covers too and, with a
-            # region, that show one of its triangles; the target's normals there.
-            target = self._target_rows.index_select(0, view.pixel).T                   # (4, M)
-            both = target[3] * self._region.index_select(0, view.face)
+        target, both = self._covered(view)
         normals = view.blended_normals()                                                # (3, M)
         normal = ((normals - target[:3]).abs().sum(dim=0) * both).sum() / both.sum().clamp_min(1.0)
         terms = {"normal": normal}
@@ -146,9 +149,8 @@ class NormalMapObjective:
         """Each view's terms (B,) at ``vertices`` (B, N, 3)."""
         view = self._view_of(vertices)
         pixels, views = self._renderer.pixels, self.views
+        target, both = self._covered(view)
         with torch.no_grad():
-            target = self._target_rows.index_select(0, view.pixel).T                   # (4, M)
-            both = target[3] * self._region.index_select(0, view.face)
             owner = self._view.index_select(0, view.pixel)                             # (M,) B: the dump
         error = (view.blended_normals() - target[:3]).abs().sum(dim=0) * both
         sums = error.new_zeros(2, views + 1).index_add(1, owner, torch.stack([error, both]))

@@ -27,7 +27,7 @@ from statfit.core.together import FitOutcome, Member, fits_in_memory, run_stages
 from statfit.errors import StatfitError
 from statfit.model.statmodel import StatModel
 from statfit.objectives.normals import SILHOUETTE_WEIGHT, NormalMapObjective
-from statfit.render.job import RENDER_FLOATS_PER_PIXEL, PosedView, checked_stages
+from statfit.render.job import RENDER_FLOATS_PER_PIXEL, PosedView, checked_stages, silhouette_sides
 from statfit.renderer import Camera
 from statfit.structures.normal_map import NormalMap
 
@@ -75,7 +75,7 @@ def reconstruct_many(model: StatModel, normal_maps: Sequence[NormalMap], cameras
     threads = choose_threads(model.basis.size + RENDER_FLOATS_PER_PIXEL * largest, threads)
     members = [_View(i) for i in range(len(normal_maps))]
     options = dict(normal_space=normal_space, normal_convention=normal_convention, align=align,
-                   silhouette_weight=silhouette_weight, silhouette=silhouette, region=region)
+                   silhouette_weight=silhouette_weight, silhouette=silhouette_sides(silhouette, model), region=region)
     with intra_op_threads(threads):
         torch.manual_seed(seed)
         for member, normal_map, camera in zip(members, normal_maps, cameras):

@@ -91,7 +91,8 @@ class SteadyRenderer:
             self._rotation_t, self._translation = self._rotation_t[0], self._translation[0, 0]
             self._focal_t, self._principal = self._focal_t[0], self._principal[0, 0]
         # The padded first pixel of each triangle's view (B > 1): its image's offset in the stack.
-        self._view_origin = (torch.arange(views, **long) * view_pixels).repeat_interleave(count // views)
+        self._view_origin = (torch.arange(views, **long) * view_pixels).repeat_interleave(count // views) \
+            if views > 1 else None
         self._last_pixel = torch.tensor([[width - 1], [height - 1]], dtype=dtype, device=device)
         corners = faces.T.reshape(-1)
         self._corners = corners                                        # (3F,) corner-major
