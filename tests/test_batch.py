@@ -186,9 +186,13 @@ def test_a_pool_starts_its_workers_at_its_first_fit_and_before_handing_it_over()
 
 
 def test_local_pool_fits_like_one_by_one_register_and_reruns_skip_what_is_done(scans, tmp_path):
+    """One fit a program (``--together 1``, the CPU's default; a GPU's steps many together, which
+    test_scans_registered_together_fit_as_one_by_one holds): the pool's outputs are the bytes that
+    ``register`` writes."""
     out = tmp_path / "fits"
+    alone = ("--together", "1")
     code, err = run_cli(["batch", "register", str(scans / "**" / "*.ply"), "--out-dir", str(out), "--workers", "2",
-                         "--seed", "3", *FAST])
+                         "--seed", "3", *alone, *FAST])
     assert code == 1, err  # two inputs are corrupt
     rows = fit_rows(out)
     assert sorted(Path(r["input"]).name for r in rows if r["status"] == "failed") == ["broken.ply", "empty.ply"]
@@ -204,7 +208,7 @@ def test_local_pool_fits_like_one_by_one_register_and_reruns_skip_what_is_done(s
     # Rerun: only the two failures are tried again; a changed input is redone.
     (scans / "left" / "scan01.ply").write_bytes((scans / "left" / "scan01.ply").read_bytes())  # same bytes
     code, _ = run_cli(["batch", "register", str(scans / "**" / "*.ply"), "--out-dir", str(out), "--workers", "2",
-                       "--seed", "3", *FAST])
+                       "--seed", "3", *alone, *FAST])
     assert code == 1 and len(fit_rows(out)) == len(rows) + 2
     # New settings redo everything.
     code, _ = run_cli(["batch", "register", str(scans / "right" / "scan0[02].ply"), "--out-dir", str(out),

@@ -179,7 +179,10 @@ def test_batch_render_together_fits_as_one_by_one(tmp_path):
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_maps_fitted_together_on_cuda_are_captured_as_one_graph(embedded_model, views, monkeypatch):
     """On a GPU the stage of many maps is captured and replayed (one launch an iteration for all):
-    it ends where the op-by-op fit ends."""
+    it ends where the op-by-op fit ends. Not to the bit: CUDA's atomic adds sum in no fixed order, so
+    two runs of one fit differ at float32 rounding, which 60 iterations of pixel decisions grow in
+    places (an H100: 1.6e-4 m at most, 0.06% of the head); a replay of stale buffers would be off by
+    the fit's own motion (~1e-2 m)."""
     maps, cameras, _ = views
     fits = {}
     for graphs in ("1", "0"):
@@ -187,4 +190,7 @@ def test_maps_fitted_together_on_cuda_are_captured_as_one_graph(embedded_model, 
         fits[graphs] = reconstruct_many(embedded_model, maps[:3], cameras[:3], "statistical", preset="paper",
                                         align="none", iterations=60, device="cuda")
     for captured, eager in zip(fits["1"], fits["0"]):
-        np.testing.assert_allclose(captured.fit.vertices, eager.fit.vertices, atol=1e-4)
+        assert "graph" in captured.fit.stage_seconds and "graph" not in eager.fit.stage_seconds
+        scale = np.ptp(eager.fit.vertices, axis=0).max()
+        difference = np.abs(captured.fit.vertices - eager.fit.vertices)
+        assert difference.max() < 2e-3 * scale and difference.mean() < 1e-4 * scale
