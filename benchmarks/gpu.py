@@ -129,6 +129,12 @@ def fallback_test_ms(model, points: np.ndarray) -> float:
     return median_ms(test, "cpu")
 
 
+def captured(outcomes) -> str:
+    """How many of a fit of many's outcomes ran a stage as a captured CUDA graph, as "k of n"."""
+    fits = [each.fit for each in outcomes if each.fit is not None]
+    return f"{sum('graph' in fit.stage_seconds for fit in fits)} of {len(outcomes)}"
+
+
 def timed(fit, device: str):
     """One run of ``fit()``: (result, seconds)."""
     synchronize(device)
@@ -235,9 +241,10 @@ def main() -> None:
     synchronize(device)
     rows[f"register default, {count} scans one after another: fits/s"] = count / (time.perf_counter() - start)
     start = time.perf_counter()
-    register_many(ict, scans, "default", device=device)
+    outcomes = register_many(ict, scans, "default", device=device)
     synchronize(device)
     rows[f"register default, {count} scans together (register_many): fits/s"] = count / (time.perf_counter() - start)
+    rows[f"register default, {count} scans together: captured"] = captured(outcomes)
     rows["register together, 8 fits: ops/it"], rows["register together, 8 fits: waits/it"] = per_iteration(
         lambda it: register_many(embedded, [points] * 8, "statistical", preset="paper", align="none", device=device,
                                  iterations=it)[0].fit.iterations)
@@ -259,9 +266,10 @@ def main() -> None:
     label = f"render paper statistical, {RENDER_TOGETHER_ITERATIONS} iterations at {size}², no alignment"
     rows[f"{label}, one after another: fits/s"] = alone_count / (time.perf_counter() - start)
     start = time.perf_counter()
-    reconstruct_many(ict, maps, cameras, "statistical", **steady)
+    outcomes = reconstruct_many(ict, maps, cameras, "statistical", **steady)
     synchronize(device)
     rows[f"{label}, {together_count} together (reconstruct_many): fits/s"] = together_count / (time.perf_counter() - start)
+    rows[f"{label}, {together_count} together: captured"] = captured(outcomes)
     rows["render together, 8 fits: ops/it"], rows["render together, 8 fits: waits/it"] = per_iteration(
         lambda it: reconstruct_many(embedded, [normal_map] * 8, [camera] * 8, "statistical",
                                     preset="paper", align="none", device=device, iterations=it)[0].fit.iterations)
