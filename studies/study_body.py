@@ -138,8 +138,17 @@ def body_model():
 
 
 def held_out_body(seed: int) -> np.ndarray:
+    """Held-out body ``seed`` (N, 3), m; kept beside ``MODEL_CACHE`` after its first making (the
+    targets' reading, ~10 s, is then paid once, not by every worker process)."""
+    path = MODEL_CACHE.with_name(f"{MODEL_CACHE.stem}-held-out-{seed}.npy")
+    if path.exists():
+        return np.load(path)
     space = body_space()
-    return space.shapes(space.weights(np.random.default_rng(seed), 1, "held_out"))[0]
+    body = space.shapes(space.weights(np.random.default_rng(seed), 1, "held_out"))[0]
+    partial = path.with_name(f"{path.stem}.{os.getpid()}.npy")      # workers may make it at once: whole files only
+    np.save(partial, body)
+    os.replace(partial, path)
+    return body
 
 
 def view(seed: int, yaw: float, pitch: float, size: int):

@@ -23,6 +23,20 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from common import ICT as ICT_DIR  # noqa: E402
 
 
+# The test files that take longest (seconds on two workers, docs/benchmarks.md §16), longest first.
+# The README's command gives each pytest-xdist worker whole files in collection order
+# (``--dist loadfile --no-loadscope-reorder``): these start first and side by side, and the many short
+# files fill in after, instead of a three-minute file starting last.
+LONGEST_FIRST = ("test_bodies.py", "test_batch.py", "test_render_ict.py", "test_real_scans.py", "test_register_ict.py",
+                 "test_fallback.py", "test_many_render.py", "test_fuzz_options.py", "test_other_models.py",
+                 "test_cli.py", "test_held_out_half.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: index for index, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(LONGEST_FIRST)))   # stable: files keep their order
+
+
 def pytest_configure(config):
     if os.environ.get(DEVICE_ENV, "").startswith("cuda") and not torch.cuda.is_available():
         raise pytest.UsageError(f"{DEVICE_ENV}={os.environ[DEVICE_ENV]} but torch sees no CUDA device")
@@ -68,7 +82,12 @@ def rng():
 
 @pytest.fixture(autouse=True)
 def _threads():
-    torch.set_num_threads(2)
+    """Two torch threads a test process, one a worker where pytest-xdist runs two or more: the
+    README's two workers on CI's two cores, two threads each, oversubscribe the cores, and OpenMP's
+    threads spin waiting for each other (two heavy test files on two workers: 316 s, 219 s with
+    one thread a worker; docs/benchmarks.md §16)."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    torch.set_num_threads(max(1, 2 // workers))
 
 
 def run_cli(argv: list[str]) -> tuple[int, str]:

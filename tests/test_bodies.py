@@ -19,7 +19,7 @@ from statfit.io.mesh import read_mesh
 from statfit.model.statmodel import load_model
 from test_cli import run
 
-from common import MAKEHUMAN
+from common import MAKEHUMAN, ROOT
 
 needs_data = pytest.mark.skipif(not (MAKEHUMAN / "3dobjs").is_dir(), reason=f"MakeHuman data not found at {MAKEHUMAN}")
 
@@ -43,6 +43,9 @@ def study_model(tmp_path_factory):
                     str(path)], check=True, capture_output=True)
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("STATFIT_BODY_MODEL", str(path))
+        # The held-out bodies the tests fit, made once here: each fit's process then reads its body.
+        subprocess.run([sys.executable, "-c", "import study_body; [study_body.held_out_body(seed) for seed in (2, 4)]"],
+                       check=True, capture_output=True, cwd=ROOT / "studies")
         yield path
 
 
@@ -146,7 +149,6 @@ def _study_fit(method: str, yaw: float, size: int, iterations: int | None = None
     """The body study's row of one fit of held-out body ``seed`` from ``yaw`` (pitch 10°)."""
     import torch
 
-    from common import ROOT
     sys.path.insert(0, str(ROOT / "studies"))
     import study_body
 
