@@ -1,6 +1,6 @@
 """The GPU benchmark (issue 38, part 7): one command, a few minutes on one GPU.
 
-    python benchmarks/gpu.py [--device cuda] [--quick] [--out FILE.json]
+    python benchmarks/gpu.py [--device cuda] [--quick] [--out FILE.json] [--profile FILE.txt]
 
 Prints a markdown table: the filter step at 2^20 vertices (k = 100); one prefactored Laplacian solve
 on ICT's mesh with cholespy and with the dense inverse; one closest-point query of the scan term
@@ -16,7 +16,8 @@ job's loop (counted with a dispatch mode, as ``../shared/tools/sync_count.py`` c
 fits per second over a run of scans, one after another and together (``register_many``: the
 gradient stage of all stepped as one, with its ops per iteration for 8 fits), and over ICT normal maps
 (paper ``statistical``'s loop without alignment, 4 maps one after another, 16 together by
-``reconstruct_many``; ops per iteration for 8). A warm-up fit runs first (CUDA's start). With
+``reconstruct_many``; ops per iteration for 8; with ``--profile FILE`` the ops of those fits stepped
+together by their device time, op by op). A warm-up fit runs first (CUDA's start). With
 ``--device cpu`` the same numbers on one CPU thread, for the ratio measured on the same machine.
 The ICT data must be at ../shared/data/ict-face.
 """
@@ -129,6 +130,30 @@ def fallback_test_ms(model, points: np.ndarray) -> float:
     return median_ms(test, "cpu")
 
 
+def profile_together(model, maps, cameras, device: str, out: Path, iterations: int = 20) -> None:
+    """Torch's profiler over ``iterations`` iterations of the maps' fits stepped together (paper
+    ``statistical``, no alignment), op by op (``STATFIT_CUDA_GRAPHS=0``: a replayed graph hides its
+    kernels): the ops by their own device time (CPU time on a CPU), a table written to ``out``."""
+    from torch.profiler import ProfilerActivity, profile
+
+    from statfit.render.many import reconstruct_many
+
+    def run() -> None:
+        reconstruct_many(model, maps, cameras, "statistical", preset="paper", align="none", iterations=iterations,
+                         device=device)
+        synchronize(device)
+
+    os.environ["STATFIT_CUDA_GRAPHS"] = "0"
+    run()                                               # warm-up: the kernels' first launches
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device == "cuda" else [])
+    with profile(activities=activities) as profiler:
+        run()
+    os.environ.pop("STATFIT_CUDA_GRAPHS", None)
+    key = "self_device_time_total" if device == "cuda" else "self_cpu_time_total"
+    out.write_text(f"{len(maps)} maps together, {iterations} iterations, op by op, on {device}\n"
+                   + profiler.key_averages().table(sort_by=key, row_limit=40))
+
+
 def captured(outcomes) -> str:
     """How many of a fit of many's outcomes ran a stage as a captured CUDA graph, as "k of n"."""
     fits = [each.fit for each in outcomes if each.fit is not None]
@@ -166,6 +191,8 @@ def main() -> None:
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--quick", action="store_true", help="small sizes: checks that it runs")
     parser.add_argument("--out", type=Path, help="also write the numbers as JSON here")
+    parser.add_argument("--profile", type=Path, help="also profile the maps' fits stepped together, op by op, "
+                        "and write the ops by their device time here")
     args = parser.parse_args()
     device = args.device
     if device == "cpu":
@@ -270,6 +297,8 @@ def main() -> None:
     synchronize(device)
     rows[f"{label}, {together_count} together (reconstruct_many): fits/s"] = together_count / (time.perf_counter() - start)
     rows[f"{label}, {together_count} together: captured"] = captured(outcomes)
+    if args.profile:
+        profile_together(ict, maps, cameras, device, args.profile)
     rows["render together, 8 fits: ops/it"], rows["render together, 8 fits: waits/it"] = per_iteration(
         lambda it: reconstruct_many(embedded, [normal_map] * 8, [camera] * 8, "statistical",
                                     preset="paper", align="none", device=device, iterations=it)[0].fit.iterations)
