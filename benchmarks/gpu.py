@@ -25,11 +25,13 @@ from __future__ import annotations
 
 import argparse
 import collections
+import contextlib
 import json
 import os
 import sys
 import time
 from pathlib import Path
+from typing import Callable, Iterator
 
 import numpy as np
 import torch
@@ -130,28 +132,28 @@ def fallback_test_ms(model, points: np.ndarray) -> float:
     return median_ms(test, "cpu")
 
 
-def profile_together(model, maps, cameras, device: str, out: Path, iterations: int = 20) -> None:
-    """Torch's profiler over ``iterations`` iterations of the maps' fits stepped together (paper
-    ``statistical``, no alignment), op by op (``STATFIT_CUDA_GRAPHS=0``: a replayed graph hides its
-    kernels): the ops by their own device time (CPU time on a CPU), a table written to ``out``."""
+@contextlib.contextmanager
+def cuda_graphs(on: bool) -> Iterator[None]:
+    """Fits in the block captured in CUDA graphs (the default) or run op by op (``STATFIT_CUDA_GRAPHS``)."""
+    os.environ["STATFIT_CUDA_GRAPHS"] = "1" if on else "0"
+    try:
+        yield
+    finally:
+        os.environ.pop("STATFIT_CUDA_GRAPHS", None)
+
+
+def profile_together(fit: Callable[[], object], device: str, out: Path, title: str) -> None:
+    """Torch's profiler over ``fit()`` run op by op (a replayed graph hides its kernels), after one
+    warm-up run: the ops by their own device time (CPU time on a CPU), under ``title``, written to ``out``."""
     from torch.profiler import ProfilerActivity, profile
 
-    from statfit.render.many import reconstruct_many
-
-    def run() -> None:
-        reconstruct_many(model, maps, cameras, "statistical", preset="paper", align="none", iterations=iterations,
-                         device=device)
-        synchronize(device)
-
-    os.environ["STATFIT_CUDA_GRAPHS"] = "0"
-    run()                                               # warm-up: the kernels' first launches
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device == "cuda" else [])
-    with profile(activities=activities) as profiler:
-        run()
-    os.environ.pop("STATFIT_CUDA_GRAPHS", None)
+    with cuda_graphs(False):
+        timed(fit, device)                              # warm-up: the kernels' first launches
+        with profile(activities=activities) as profiler:
+            timed(fit, device)
     key = "self_device_time_total" if device == "cuda" else "self_cpu_time_total"
-    out.write_text(f"{len(maps)} maps together, {iterations} iterations, op by op, on {device}\n"
-                   + profiler.key_averages().table(sort_by=key, row_limit=40))
+    out.write_text(f"{title}, op by op, on {device}\n" + profiler.key_averages().table(sort_by=key, row_limit=40))
 
 
 def captured(outcomes) -> str:
@@ -298,19 +300,21 @@ def main() -> None:
     rows[f"{label}, {together_count} together (reconstruct_many): fits/s"] = together_count / (time.perf_counter() - start)
     rows[f"{label}, {together_count} together: captured"] = captured(outcomes)
     if args.profile:
-        profile_together(ict, maps, cameras, device, args.profile)
+        profiled = 20
+        profile_together(lambda: reconstruct_many(ict, maps, cameras, "statistical", **{**steady, "iterations": profiled}),
+                         device, args.profile, f"{together_count} maps together at {size}², {profiled} iterations")
     rows["render together, 8 fits: ops/it"], rows["render together, 8 fits: waits/it"] = per_iteration(
         lambda it: reconstruct_many(embedded, [normal_map] * 8, [camera] * 8, "statistical",
                                     preset="paper", align="none", device=device, iterations=it)[0].fit.iterations)
     save(rows, args.out)
 
     for name, (make, method, preset, graphs_on, whole, overrides) in jobs.items():
-        os.environ["STATFIT_CUDA_GRAPHS"] = "1" if graphs_on else "0"
         timer = StageTimer()
         fit = make(method, preset, None, **overrides)
-        result, seconds = timed(lambda: fit(timer), device) if whole and not args.quick else (None, float("nan"))
-        short, short_seconds = timed(lambda: make(method, preset, few, **overrides)(None), device)
-        long, long_seconds = timed(lambda: make(method, preset, more, **overrides)(None), device)
+        with cuda_graphs(graphs_on):
+            result, seconds = timed(lambda: fit(timer), device) if whole and not args.quick else (None, float("nan"))
+            short, short_seconds = timed(lambda: make(method, preset, few, **overrides)(None), device)
+            long, long_seconds = timed(lambda: make(method, preset, more, **overrides)(None), device)
         per_iteration_s = (long_seconds - short_seconds) / max(long.iterations - short.iterations, 1)
         rows[f"{name}: s per fit"] = seconds
         rows[f"{name}: iterations"] = None if result is None else result.iterations
@@ -321,7 +325,6 @@ def main() -> None:
         print(f"{name}: {seconds:.2f} s, {1e3 * per_iteration_s:.2f} ms/it, graph {rows[f'{name}: CUDA graph']}",
               file=sys.stderr, flush=True)
         save(rows, args.out)
-    os.environ.pop("STATFIT_CUDA_GRAPHS", None)
 
     report(rows, args.out)
 

@@ -32,7 +32,7 @@ LONGEST_FIRST = ("test_bodies.py", "test_batch.py", "test_render_ict.py", "test_
                  "test_cli.py", "test_held_out_half.py")
 
 
-def pytest_collection_modifyitems(config, items):
+def pytest_collection_modifyitems(items):
     rank = {name: index for index, name in enumerate(LONGEST_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(LONGEST_FIRST)))   # stable: files keep their order
 
