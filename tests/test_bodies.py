@@ -6,6 +6,7 @@ import gzip
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -74,16 +75,38 @@ def test_a_folder_of_another_layout_is_refused(tmp_path, capsys):
     assert not out.exists()
 
 
-def test_a_decompression_bomb_is_refused_after_the_cap(tmp_path):
+def _one_triangle_folder(folder: Path, targets: dict[str, bytes]) -> Path:
+    """A MakeHuman folder of one body triangle and the given macrodetails targets (name → text)."""
     for part in ("3dobjs", "targets/macrodetails", "mesh_metadata"):
-        (tmp_path / part).mkdir(parents=True)
-    (tmp_path / "mesh_metadata/basemesh_vertex_groups.json").write_text(json.dumps({"body": [[0, 2]]}))
-    (tmp_path / "targets/target.json").write_text("{}")
-    (tmp_path / "3dobjs/base.obj.gz").write_bytes(gzip.compress(b"v 0 0 0\nv 1 0 0\nv 0 1 0\ng body\nf 1 2 3\n"))
+        (folder / part).mkdir(parents=True)
+    (folder / "mesh_metadata/basemesh_vertex_groups.json").write_text(json.dumps({"body": [[0, 2]]}))
+    (folder / "targets/target.json").write_text("{}")
+    (folder / "3dobjs/base.obj.gz").write_bytes(gzip.compress(b"v 0 0 0\nv 1 0 0\nv 0 1 0\ng body\nf 1 2 3\n"))
+    for name, text in targets.items():
+        (folder / f"targets/macrodetails/{name}.target.gz").write_bytes(gzip.compress(text))
+    return folder
+
+
+def test_a_decompression_bomb_is_refused_after_the_cap(tmp_path):
+    _one_triangle_folder(tmp_path, {})
     with gzip.open(tmp_path / "targets/macrodetails/bomb.target.gz", "wb", compresslevel=1) as handle:
         handle.write(b"0" * (MAX_FILE_BYTES + 2))
     with pytest.raises(StatfitError, match="decompresses to more than"):
         read_makehuman(tmp_path)
+
+
+def test_targets_are_read_to_the_digit_and_a_malformed_one_is_refused(tmp_path):
+    # comments, blank lines, a vertex beyond the body (dropped) and a target that moves nothing
+    good = {"grow": b"# made by hand\n0 1 -.5 2e-1\n\n  2 0 0 -3\n7 1 1 1\n", "empty": b"# nothing\n"}
+    data = read_makehuman(_one_triangle_folder(tmp_path / "good", good))
+    assert list(data.targets) == ["macrodetails/grow"]
+    np.testing.assert_array_equal(data.targets["macrodetails/grow"].indices, [0, 2])
+    np.testing.assert_allclose(data.targets["macrodetails/grow"].deltas, [[0.1, -0.05, 0.02], [0, 0, -0.3]])
+    for name, text in {"three": b"0 1 2\n1 1 2\n", "word": b"0 1 x 2\n", "ragged": b"0 1 2 3\n1 1 2\n",
+                       "negative": b"-1 0 0 0\n", "nan": b"0 nan 0 0\n"}.items():
+        with pytest.raises(StatfitError, match=f"{name}.target.gz") as refused:
+            read_makehuman(_one_triangle_folder(tmp_path / name, {name: text}))
+        assert "\n" not in str(refused.value)
 
 
 @needs_data

