@@ -219,7 +219,7 @@ def test_local_pool_fits_like_one_by_one_register_and_reruns_skip_what_is_done(s
 def test_a_killed_batch_resumes_without_redoing_what_it_recorded(scans, tmp_path):
     out = tmp_path / "fits"
     command = [sys.executable, "-m", "statfit_cli.main", "batch", "register", str(scans / "**" / "scan*.ply"),
-               "--out-dir", str(out), "--workers", "2", "-q", "--iterations", "300"]
+               "--out-dir", str(out), "--workers", "2", "-q", "--iterations", "300", "--align", "none"]
     process = subprocess.Popen(command, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and len(fit_rows(out) if out.exists() else []) < 3:
@@ -243,7 +243,7 @@ def test_a_killed_batch_resumes_without_redoing_what_it_recorded(scans, tmp_path
 def test_sigterm_stops_the_batch_with_code_130_and_a_clean_manifest(scans, tmp_path):
     out = tmp_path / "fits"
     command = [sys.executable, "-m", "statfit_cli.main", "batch", "register", str(scans / "**" / "scan*.ply"),
-               "--out-dir", str(out), "--workers", "1", "--iterations", "300"]
+               "--out-dir", str(out), "--workers", "1", "--iterations", "300", "--align", "none"]
     process = subprocess.Popen(command, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and len(fit_rows(out) if out.exists() else []) < 1:
