@@ -159,6 +159,46 @@ def progress_bar(total: int, label: str, enabled: bool):
         yield advance
 
 
+@contextmanager
+def count_bar(label: str, enabled: bool):
+    """Progress of work counted in items (files read, inputs checked): a rich bar on stderr when it is
+    a terminal, else a plain "label: done/total, Ns" line every ``PROGRESS_LINE_SECONDS``; yields
+    ``advance(done, total)``."""
+    if not enabled:
+        yield lambda done, total: None
+        return
+    if not sys.stderr.isatty():
+        started = last = time.perf_counter()
+
+        def line(done: int, total: int) -> None:
+            nonlocal last
+            now = time.perf_counter()
+            if now - last >= PROGRESS_LINE_SECONDS:
+                last = now
+                print(f"statfit: {label}: {done}/{total}, {now - started:.0f} s", file=sys.stderr, flush=True)
+
+        yield line
+        return
+    columns = (TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+               TimeElapsedColumn(), TimeRemainingColumn())
+    with Progress(*columns, console=stderr, transient=True) as progress:
+        task = progress.add_task(label, total=None)
+        yield lambda done, total: progress.update(task, completed=done, total=total)
+
+
+@contextmanager
+def stage_line(message: str, enabled: bool):
+    """One stage of a long command said on stderr while it runs (a spinner on a terminal, else one line)."""
+    if not enabled:
+        yield
+    elif sys.stderr.isatty():
+        with stderr.status(message):
+            yield
+    else:
+        print(f"statfit: {message}", file=sys.stderr, flush=True)
+        yield
+
+
 CLUTTER_CHOICES = {"auto": None, "on": True, "off": False}
 ClutterOption = typer.Option("auto", help="Rules for scan points off the template (hair, shoulders, background): a "
                              "point counts only if its normal agrees with the surface's and it is not far beyond the "

@@ -20,7 +20,7 @@ from statfit.model.statmodel import StatModel, save_model, units_guess
 from statfit.model.importers.cache import open_model
 from statfit.model.params import posed_shape
 from statfit.model.params_file import read_params
-from statfit_cli.common import SeedOption, printed_warnings, seed_option, within
+from statfit_cli.common import QuietOption, SeedOption, count_bar, printed_warnings, seed_option, stage_line, within
 
 
 app = typer.Typer(help="Import, build, inspect and sample statistical models.", no_args_is_help=True)
@@ -121,6 +121,7 @@ def build_makehuman(
     samples: int = typer.Option(5000, help="Random bodies the PCA learns from.", callback=within(2, 1_000_000)),
     seed: int = seed_option(0, "Seed of the random bodies: the same seed builds the same model."),
     json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
+    quiet: bool = QuietOption,
 ) -> None:
     """Build a full-body PCA model from the open MakeHuman base mesh and morph targets (CC0): the skin
     (13,380 vertices, metres, file order), learnt from random bodies (global sliders gender, age,
@@ -131,8 +132,10 @@ def build_makehuman(
         statfit model build-makehuman ../shared/data/makehuman -o body.npz --k 300 --samples 5000 --seed 0
     """
     _check_output(out)
-    space = BodySpace(read_makehuman(folder))
-    built = build_body_model(space, k, samples, seed, body_regions(space))
+    with count_bar("reading MakeHuman's morph targets", not quiet) as advance:
+        space = BodySpace(read_makehuman(folder, advance))
+    with stage_line(f"learning {k} modes from {samples:,} random bodies", not quiet):
+        built = build_body_model(space, k, samples, seed, body_regions(space))
     save_model(built.model, out, np.float32)
     report = {"output": str(out), "samples": samples, "vertices": built.model.num_vertices,
               "modes": built.model.num_modes, "variance_explained": _explained(built.variance_explained, True)}

@@ -20,7 +20,7 @@ from statfit.renderer.images import render_target
 from statfit.synth.views import generated_albedo, held_out_split, hemisphere_cameras
 from statfit.renderer.images import photograph
 from statfit.model.importers.cache import open_model
-from statfit_cli.common import ModelOption, seed_option, within
+from statfit_cli.common import ModelOption, QuietOption, count_bar, seed_option, within
 
 
 app = typer.Typer(help="Make synthetic test data from a model, with its ground truth.", no_args_is_help=True)
@@ -183,6 +183,7 @@ def body(
     held_out: bool = typer.Option(True, "--held-out/--train", help="held-out: a body the built model never saw "
                                   "(asymmetric, expressions, asym targets, sliders in the tails); train: a body "
                                   "from the model's own training distribution."),
+    quiet: bool = QuietOption,
 ) -> None:
     """A random MakeHuman body, as ground truth for full-body tests (docs/bodies.md).
 
@@ -190,7 +191,8 @@ def body(
         statfit synth normals --model body.npz --shape person.ply --yaw 30 --size 768 --out body.exr --camera-out cam.json
     """
     check_writable(out)
-    space = BodySpace(read_makehuman(folder))
+    with count_bar("reading MakeHuman's morph targets", not quiet) as advance:
+        space = BodySpace(read_makehuman(folder, advance))
     weights = space.weights(np.random.default_rng(seed), 1, "held_out" if held_out else "train")
     write_atomic(out, mesh_bytes(space.shapes(weights)[0], space.data.faces, mesh_format(out)))
 

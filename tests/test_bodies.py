@@ -98,7 +98,9 @@ def test_a_decompression_bomb_is_refused_after_the_cap(tmp_path):
 def test_targets_are_read_to_the_digit_and_a_malformed_one_is_refused(tmp_path):
     # comments, blank lines, a vertex beyond the body (dropped) and a target that moves nothing
     good = {"grow": b"# made by hand\n0 1 -.5 2e-1\n\n  2 0 0 -3\n7 1 1 1\n", "empty": b"# nothing\n"}
-    data = read_makehuman(_one_triangle_folder(tmp_path / "good", good))
+    seen = []
+    data = read_makehuman(_one_triangle_folder(tmp_path / "good", good), lambda done, total: seen.append((done, total)))
+    assert seen == [(1, 2), (2, 2)]  # progress: after each target file
     assert list(data.targets) == ["macrodetails/grow"]
     np.testing.assert_array_equal(data.targets["macrodetails/grow"].indices, [0, 2])
     np.testing.assert_allclose(data.targets["macrodetails/grow"].deltas, [[0.1, -0.05, 0.02], [0, 0, -0.3]])
@@ -148,6 +150,7 @@ def test_a_body_from_one_normal_map_on_the_command_line(tmp_path, capsys):
                           "--samples", "400", "--json"], capsys)
     assert code == 0, err
     assert json.loads(out)["modes"] == 40 and load_model(model).num_vertices == 13380
+    assert "learning 40 modes from 400 random bodies" in err  # progress on stderr; stdout is the JSON alone
     assert run(["synth", "body", str(MAKEHUMAN), "--seed", "4", "-o", str(person)], capsys)[0] == 0
     code, _, err = run(["synth", "normals", "--model", str(model), "--shape", str(person), "--yaw", "30",
                         "--size", "160", "--out", str(exr), "--camera-out", str(camera), "--gt", str(gt)], capsys)
