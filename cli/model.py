@@ -11,7 +11,7 @@ from rich.table import Table
 
 from statfit.model.build import build_model_from_files
 from statfit.errors import StatfitError
-from statfit.model.importers import import_model
+from statfit.model.importers import LIGHT_FACE_COUNT, LIGHT_LANDMARKS, import_model, unread_npz_keys
 from statfit.model.importers.makehuman import read_makehuman
 from statfit.model.importers.makehuman_shapes import BodySpace, body_regions, build_body_model
 from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, write_atomic
@@ -44,6 +44,7 @@ def _check_output(out: Path, *inputs: Path) -> None:
 
 def _summary(model: StatModel) -> str:
     return f"{model.num_vertices} vertices, {len(model.faces)} faces, {model.num_modes} modes" + \
+        (f", {model.landmarks.size} landmarks" if model.landmarks is not None else "") + \
         (f", regions {'+'.join(model.regions)}" if model.regions else "")
 
 
@@ -232,6 +233,7 @@ def info(
         "bbox_extent": extent.tolist(), "units_guess": units_guess(model.template),
         "landmarks": 0 if model.landmarks is None else int(model.landmarks.size),
         "regions": {name: int(idx.size) for name, idx in model.regions.items()},
+        "unread_keys": unread_npz_keys(model_path) if model_path is not None else [],
     }
     if json_out:
         print(json.dumps(report))
@@ -244,9 +246,15 @@ def info(
             continue
         if isinstance(value, dict):
             value = ", ".join(f"{k}: {v:.4g}" if isinstance(v, float) else f"{k}: {v}" for k, v in value.items()) or "-"
+        elif key == "unread_keys":
+            value = ", ".join(value) or "-"
         elif isinstance(value, list):
             value = " × ".join(f"{v:.4g}" for v in value)
         elif isinstance(value, float):
             value = f"{value:.4g}"
         table.add_row(key.replace("_", " "), str(value))
     Console().print(table)
+    if {LIGHT_LANDMARKS, LIGHT_FACE_COUNT} & set(report["unread_keys"]):
+        print(f"{LIGHT_LANDMARKS} and {LIGHT_FACE_COUNT} (the light ICT-FaceKit layout) are not read by fitting "
+              f"commands; `statfit model import {model_path} -o OUT.npz` stores them as the model's landmarks and "
+              "face region.")

@@ -164,6 +164,40 @@ def _no_landmarks_model(path: Path) -> Path:
     return path
 
 
+def _light_layout_model(path: Path, face_count=40) -> Path:
+    """The embedded model in the light ICT-FaceKit npz layout (../shared/data/ict-face/README.md): its
+    landmarks as ``landmarks68``, a face as ``face_vertex_count``, no contract keys for either."""
+    arrays = model_arrays(load_model(default_model_path()))
+    landmarks = arrays.pop("landmarks")
+    arrays = {k: v for k, v in arrays.items() if not k.startswith("region_")}
+    np.savez(path, **arrays, landmarks68=landmarks.astype(np.int32), face_vertex_count=np.asarray(face_count))
+    return path
+
+
+def test_the_light_ict_layouts_landmarks_and_face_are_named_by_info_and_kept_by_import(tmp_path, capsys):
+    light = _light_layout_model(tmp_path / "light.npz")
+    landmarks = load_model(default_model_path()).landmarks
+    plain = load_model(light)  # fitting commands read the contract alone: nothing changes under them
+    assert plain.landmarks is None and plain.regions == {}
+    code, out, _ = run(["model", "info", str(light), "--json"], capsys)
+    assert code == 0 and json.loads(out)["unread_keys"] == ["face_vertex_count", "landmarks68"]
+    code, out, _ = run(["model", "info", str(light)], capsys)
+    assert code == 0 and f"statfit model import {light} -o OUT.npz" in out.replace("\n", "")
+    code, out, err = run(["model", "import", str(light), "-o", str(tmp_path / "imported.npz")], capsys)
+    assert code == 0, err
+    assert f"{landmarks.size} landmarks, regions face" in out
+    imported = load_model(tmp_path / "imported.npz")
+    np.testing.assert_array_equal(imported.landmarks, landmarks)
+    np.testing.assert_array_equal(imported.regions["face"], np.arange(40))
+    code, out, _ = run(["model", "info", str(tmp_path / "imported.npz"), "--json"], capsys)
+    assert json.loads(out)["unread_keys"] == [] and json.loads(out)["landmarks"] == landmarks.size
+    # the user's own landmark file wins over the file's
+    (tmp_path / "mine.txt").write_text("0 1 2 3")
+    assert run(["model", "import", str(light), "--landmarks", str(tmp_path / "mine.txt"), "-o",
+                str(tmp_path / "mine.npz")], capsys)[0] == 0
+    np.testing.assert_array_equal(load_model(tmp_path / "mine.npz").landmarks, [0, 1, 2, 3])
+
+
 def _tetra(t: Path, name: str, faces: list) -> Path:
     return _ply(t / name, np.eye(4, 3) + np.arange(4)[:, None] * 0.1, np.array(faces))
 
@@ -192,6 +226,10 @@ BAD_INPUTS = {
     "landmark indices outside the model": lambda t, s: ["model", "import", str(_no_landmarks_model(t / "m.npz")),
                                                         "--landmarks", str((t / "l.txt").write_text("1 2 99999") and t / "l.txt"),
                                                         "-o", str(t / "out.npz")],
+    "light layout's face count beyond the model": lambda t, s: [
+        "model", "import", str(_light_layout_model(t / "m.npz", 10**6)), "-o", str(t / "out.npz")],
+    "light layout's face count not a number": lambda t, s: [
+        "model", "import", str(_light_layout_model(t / "m.npz", np.array([1.5, 2]))), "-o", str(t / "out.npz")],
     "malicious pickle imported": lambda t, s: ["model", "import", str(_malicious(t / "evil.pkl")), "-o", str(t / "out.npz")],
     "malicious pickle as --model": lambda t, s: ["register", str(s), "--model", str(_malicious(t / "evil.pkl")),
                                                  "-o", str(t / "fit.ply")],

@@ -18,6 +18,12 @@ from statfit.io.landmarks import read_landmark_indices
 from statfit.model.statmodel import StatModel, load_model, refuse_texture_model, with_landmarks, with_regions
 
 CONTRACT_KEYS = ("v_template", "faces", "shapedirs")
+# What a statfit npz holds besides: read by every command (``load_model``).
+OPTIONAL_KEYS = ("landmarks", "kind")
+# The light ICT-FaceKit npz (../shared/data/ict-face, its README): its 68 Multi-PIE landmark vertices and
+# the face geometry's vertex count (the face is vertices [0, count)). ``model import`` stores them as the
+# contract's ``landmarks`` and ``region_face``; a plain load leaves them out, as any key it does not read.
+LIGHT_LANDMARKS, LIGHT_FACE_COUNT = "landmarks68", "face_vertex_count"
 FORMATS = "a statfit model npz, a FLAME/SMPL-X/SMPL pickle or npz, an ICT-FaceKit folder or a BFM 2017 h5 file"
 
 
@@ -73,13 +79,37 @@ def _import(path: str | Path, *, k: int | None, expressions: bool, region: str |
     if expressions and kind in ("statfit", "ict"):
         raise StatfitError(f"{path}: --expressions applies to FLAME, SMPL-X and BFM models")
     if kind == "statfit":
-        return load_model(path, k)
+        return _with_light_keys(load_model(path, k), Path(path))
     if kind == "ict":
         return import_ict(path, k=k, region=region)
     if kind == "bfm":
         return import_bfm(path, k=k, expressions=expressions)
     arrays = smpl.read_pickle(path) if kind == "smpl-pickle" else _read_npz(path, smpl.REQUIRED_KEYS + smpl.SMPLX_KEYS)[1]
     return smpl.from_arrays(arrays, str(path), k=k, expressions=expressions)
+
+
+def unread_npz_keys(path: str | Path) -> list[str]:
+    """The keys of a statfit npz that fitting commands do not read (sorted; [] for other formats), e.g.
+    an exporter's own names for landmarks or regions."""
+    path = Path(path)
+    if model_format(path) != "statfit":
+        return []
+    keys, _ = _read_npz(path)
+    return sorted(key for key in keys if key not in CONTRACT_KEYS + OPTIONAL_KEYS and not key.startswith("region_"))
+
+
+def _with_light_keys(model: StatModel, path: Path) -> StatModel:
+    """``model`` with the light ICT-FaceKit npz's landmarks and face region, where it has them and not
+    the contract's own."""
+    _, arrays = _read_npz(path, (LIGHT_LANDMARKS, LIGHT_FACE_COUNT))
+    if LIGHT_LANDMARKS in arrays and model.landmarks is None:
+        model = with_landmarks(model, arrays[LIGHT_LANDMARKS].astype(np.int64), f"{path}: {LIGHT_LANDMARKS}")
+    if LIGHT_FACE_COUNT in arrays and "face" not in model.regions:
+        count = np.asarray(arrays[LIGHT_FACE_COUNT])
+        if count.shape != () or not np.issubdtype(count.dtype, np.integer) or not 0 < int(count) <= model.num_vertices:
+            raise StatfitError(f"{path}: {LIGHT_FACE_COUNT} must be one whole number in 1..{model.num_vertices}")
+        model = with_regions(model, {"face": np.arange(int(count))}, f"{path}: {LIGHT_FACE_COUNT}")
+    return model
 
 
 def _read_npz(path: Path, keys: tuple[str, ...] = ()) -> tuple[set[str], dict[str, np.ndarray]]:
