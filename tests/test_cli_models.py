@@ -164,13 +164,14 @@ def _no_landmarks_model(path: Path) -> Path:
     return path
 
 
-def _light_layout_model(path: Path, face_count=40) -> Path:
+def _light_layout_model(path: Path, face_count=40, landmarks=None) -> Path:
     """The embedded model in the light ICT-FaceKit npz layout (../shared/data/ict-face/README.md): its
     landmarks as ``landmarks68``, a face as ``face_vertex_count``, no contract keys for either."""
     arrays = model_arrays(load_model(default_model_path()))
-    landmarks = arrays.pop("landmarks")
+    own = arrays.pop("landmarks")
     arrays = {k: v for k, v in arrays.items() if not k.startswith("region_")}
-    np.savez(path, **arrays, landmarks68=landmarks.astype(np.int32), face_vertex_count=np.asarray(face_count))
+    np.savez(path, **arrays, landmarks68=own.astype(np.int32) if landmarks is None else landmarks,
+             face_vertex_count=np.asarray(face_count))
     return path
 
 
@@ -230,6 +231,9 @@ BAD_INPUTS = {
         "model", "import", str(_light_layout_model(t / "m.npz", 10**6)), "-o", str(t / "out.npz")],
     "light layout's face count not a number": lambda t, s: [
         "model", "import", str(_light_layout_model(t / "m.npz", np.array([1.5, 2]))), "-o", str(t / "out.npz")],
+    "light layout's landmarks not whole numbers": lambda t, s: [
+        "model", "import", str(_light_layout_model(t / "m.npz", landmarks=np.array([0.5, 1.2, 2.0]))), "-o",
+        str(t / "out.npz")],
     "malicious pickle imported": lambda t, s: ["model", "import", str(_malicious(t / "evil.pkl")), "-o", str(t / "out.npz")],
     "malicious pickle as --model": lambda t, s: ["register", str(s), "--model", str(_malicious(t / "evil.pkl")),
                                                  "-o", str(t / "fit.ply")],

@@ -103,7 +103,7 @@ def _with_light_keys(model: StatModel, path: Path) -> StatModel:
     the contract's own."""
     _, arrays = _read_npz(path, (LIGHT_LANDMARKS, LIGHT_FACE_COUNT))
     if LIGHT_LANDMARKS in arrays and model.landmarks is None:
-        model = with_landmarks(model, arrays[LIGHT_LANDMARKS].astype(np.int64), f"{path}: {LIGHT_LANDMARKS}")
+        model = with_landmarks(model, arrays[LIGHT_LANDMARKS], f"{path}: {LIGHT_LANDMARKS}")
     if LIGHT_FACE_COUNT in arrays and "face" not in model.regions:
         count = np.asarray(arrays[LIGHT_FACE_COUNT])
         if count.shape != () or not np.issubdtype(count.dtype, np.integer) or not 0 < int(count) <= model.num_vertices:
