@@ -97,7 +97,19 @@ def report(rows: list[dict]) -> str:
         <= min(np.mean([r["held_0.0"] for r in cases if key(r)[:2] == p]),
                np.mean([r["held_1.0"] for r in cases if key(r)[:2] == p])) + 1e-9 for p in pairs))
         for rule in rules.values()) + " |")
+    better = np.array([r["held_1.0"] < r["held_0.0"] for r in cases])
+    signals = {"the gate's code": [gate[key(r)]["fallback"]["code"] for r in cases],
+               "the gate's residual": [gate[key(r)]["fallback"]["residual"] for r in cases],
+               "seen-half distance, default ÷ `laplacian`": [r["seen_0.0"] / r["seen_1.0"] for r in cases]}
+    lines += ["", f"AUC for \"`laplacian` guesses the held-out half better\" ({better.sum()} of {len(cases)} cases): "
+              + "; ".join(f"{name} {_auc(np.array(values), better):.2f}" for name, values in signals.items()) + "."]
     return "\n".join(lines)
+
+
+def _auc(score: np.ndarray, positive: np.ndarray) -> float:
+    """The chance that a positive case scores above a negative one (ties count half)."""
+    above = score[positive][:, None] - score[~positive][None, :]
+    return float(np.mean((above > 0) + 0.5 * (above == 0)))
 
 
 if __name__ == "__main__":
