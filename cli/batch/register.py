@@ -6,6 +6,7 @@ from pathlib import Path
 import typer
 
 from statfit.batch.fits import FitJob
+from statfit.batch.plan import check_companion_template
 from statfit.core.device import resolve_device
 from statfit.core.methods import fallback as method_fallback, resolve
 from statfit.errors import StatfitError
@@ -43,6 +44,15 @@ def batch_register(
     refresh: int = typer.Option(10, help="Recompute closest surface points every N iterations.",
                                 callback=within(1, 100_000)),
     trim: float = typer.Option(0.05, help="Fraction of farthest scan points ignored.", callback=within(0, 0.99)),
+    landmarks: str = typer.Option(None, "--landmarks", help="Each scan's own landmarks file, named by this "
+                                  "template: {stem} is the scan's name without its extension, and a relative path "
+                                  "lies in the scan's folder ('{stem}.pts': scans/a.ply uses scans/a.pts; "
+                                  "'/data/lm/{stem}.txt'). Rows and use as for `statfit register --landmarks`. A "
+                                  "scan without its file fails alone; a changed file is fitted again on a rerun.",
+                                  show_default=False),
+    landmark_weight: float = typer.Option(None, help="Weight of the landmark term (see `statfit register --help`); "
+                                          "0: the landmarks place the start only.  [default: the method's]",
+                                          callback=within(0, 1e6), show_default=False),
     clutter: str = ClutterOption,
     device: str = DeviceOption,
     threads: int = BatchThreadsOption,
@@ -72,6 +82,7 @@ def batch_register(
         statfit batch register 'scans/**/*.ply' --model model.npz --out-dir fits/ --workers 2
         statfit batch register 'scans/**/*.ply' --model model.npz --out-dir fits/ --scheduler tcp://head:8786
         statfit batch register 'scans/*.ply' --out-dir fits/ --params    # fits/<scan>.params.json too
+        statfit batch register 'scans/*.ply' --model flame.npz --out-dir fits/ --landmarks '{stem}.pts'
         statfit batch register 'scans/*.ply' --out-dir fits/ --device cuda --workers 4   # 4 × 64 scans at once
         statfit batch status fits/
     """
@@ -84,10 +95,20 @@ def batch_register(
     model_file, digest, model = model_identity(model_path, k)
     if region is not None:
         region_vertices(model, region)
+    if landmarks is not None:
+        check_companion_template(landmarks, "--landmarks")
+        if model.landmarks is None:
+            raise StatfitError(f"the model {model.source} has no landmarks, so --landmarks cannot be used "
+                               "(`statfit model import --landmarks` stores them)")
+    elif landmark_weight is not None:
+        raise StatfitError("--landmark-weight weighs the landmarks of --landmarks; give both or neither")
     items = prepared_inputs(inputs, out_dir)
     fit_device = resolve_device(device, "register")
-    job = FitJob("register", model_file, k, stages, dict(align=align, region=region, refresh_every=refresh,
-                                                         trim=trim, seed=seed, clutter=clutter_choice(clutter)),
-                 fallback=refit, threads=threads, device=str(fit_device), model_digest=digest, params=params,
-                 together=together or together_for(model, fit_device))
+    options = dict(align=align, region=region, refresh_every=refresh, trim=trim, seed=seed,
+                   clutter=clutter_choice(clutter))
+    if landmark_weight is not None:
+        options["landmark_weight"] = landmark_weight   # only then: the settings key of batches without it stays
+    job = FitJob("register", model_file, k, stages, options, fallback=refit, threads=threads, device=str(fit_device),
+                 model_digest=digest, params=params, together=together or together_for(model, fit_device),
+                 landmarks=landmarks)
     run_fits(items, job, out_dir, workers, scheduler, cluster, timeout, force, quiet, json_out)

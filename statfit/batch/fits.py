@@ -12,6 +12,8 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from statfit import __version__
 from statfit.errors import StatfitError, one_line
 from statfit.model.importers.cache import open_model
@@ -19,6 +21,8 @@ from statfit.render.job import reconstruct
 from statfit.render.many import reconstruct_many
 from statfit.renderer import Camera
 from statfit.structures.normal_map import NormalMap
+from statfit.batch.plan import companion_file
+from statfit.io.landmarks import read_landmarks
 from statfit.io.mesh import load_scan, mesh_bytes
 from statfit.io.normalmap import camera_for_map, read_normal_map
 from statfit.model.statmodel import StatModel
@@ -46,7 +50,8 @@ class FitJob:
     ``options``: the command's keyword arguments (align, trim, seed, camera, ...); ``threads``:
     per fit (None: chosen from the problem, at most ``max_threads``); ``model_digest``: the model
     file's content hash, so a changed model redoes the batch; ``fallback``: register's
-    (:class:`statfit.core.methods.Fallback`), None for none."""
+    (:class:`statfit.core.methods.Fallback`), None for none; ``landmarks``: register's template of each
+    scan's landmarks file (:func:`statfit.batch.plan.companion_file`), None for none."""
     command: str
     model: str | None
     k: int | None
@@ -59,6 +64,7 @@ class FitJob:
     params: bool = False
     fallback: Fallback | None = None
     together: int = 1
+    landmarks: str | None = None
 
     def settings(self) -> dict[str, Any]:
         """Everything that decides an output, as plain JSON (the manifest's settings key)."""
@@ -66,7 +72,8 @@ class FitJob:
                     options=self.options, device=self.device, statfit=__version__,
                     **({"params": True} if self.params else {}),
                     **({"fallback": asdict(self.fallback)} if self.fallback else {}),
-                    **({"together": self.together} if self.together > 1 else {}))
+                    **({"together": self.together} if self.together > 1 else {}),
+                    **({"landmarks": self.landmarks} if self.landmarks else {}))
 
 
 @dataclass
@@ -122,10 +129,28 @@ def _fit(job: FitJob, source: str, model: StatModel) -> tuple[bytes, dict[str, A
     observed = _read(job, source)
     common = dict(stages=job.stages, device=job.device, threads=job.threads)
     if job.command == "register":
-        result = register(model, observed, **common, **job.options, fallback=job.fallback)
-    else:
-        result = reconstruct(model, *observed, **common, **_render_options(job))
+        landmarks = _landmarks(job, source)
+        result = register(model, observed, **common, **job.options, fallback=job.fallback,
+                          landmarks=None if landmarks is None else landmarks[1])
+        return _with_landmarks(_fitted(job, model, observed, result), landmarks)
+    result = reconstruct(model, *observed, **common, **_render_options(job))
     return _fitted(job, model, observed, result)
+
+
+def _landmarks(job: FitJob, source: str) -> tuple[Path, np.ndarray] | None:
+    """The scan's landmarks file (``job.landmarks``'s template) and its rows (L, 3), or None."""
+    if job.landmarks is None:
+        return None
+    path = companion_file(Path(source), job.landmarks)
+    return path, read_landmarks(path)
+
+
+def _with_landmarks(fitted: tuple[bytes, dict[str, Any], dict[str, bytes]], landmarks: tuple[Path, np.ndarray] | None
+                    ) -> tuple[bytes, dict[str, Any], dict[str, bytes]]:
+    """The fit's output with the landmarks file it used named in its summary (as ``register``'s)."""
+    if landmarks is not None:
+        fitted[1]["landmarks"] = str(landmarks[0].resolve())
+    return fitted
 
 
 def _read(job: FitJob, source: str) -> Scan | tuple[NormalMap, Camera]:
@@ -185,18 +210,22 @@ def run_group(job: FitJob, sources: list[str]) -> list[Outcome]:
     prepare_worker(job.max_threads)
     outcomes: dict[int, Outcome] = {}
     observed: dict[int, Scan | tuple[NormalMap, Camera]] = {}
+    landmarks: dict[int, tuple[Path, np.ndarray] | None] = {}
     for index, source in enumerate(sources):
         try:
             observed[index] = _read(job, source)
+            landmarks[index] = _landmarks(job, source) if job.command == "register" else None
         except Exception as exc:  # noqa: BLE001 - this input's one line, the others go on
+            observed.pop(index, None)
             outcomes[index] = Outcome(None, {}, one_line(exc), 0.0)
     order = sorted(observed)
     common = dict(stages=job.stages, device=job.device, threads=job.threads)
     try:
         model = _model(job.model, job.k)
         if job.command == "register":
+            given = [None if landmarks[i] is None else landmarks[i][1] for i in order]
             together = register_many(model, [observed[i] for i in order], **common, fallback=job.fallback,
-                                     **job.options)
+                                     landmarks=given if job.landmarks else None, **job.options)
         else:
             together = reconstruct_many(model, [observed[i][0] for i in order], [observed[i][1] for i in order],
                                         **common, **_render_options(job))
@@ -206,7 +235,8 @@ def run_group(job: FitJob, sources: list[str]) -> list[Outcome]:
         if fitted.fit is None:
             outcome = Outcome(None, {}, fitted.error, 0.0)
         else:
-            outcome = _guarded(lambda: _fitted(job, model, observed[index], fitted.fit))
+            outcome = _guarded(lambda: _with_landmarks(_fitted(job, model, observed[index], fitted.fit),
+                                                       landmarks.get(index)))
             outcome.seconds = fitted.fit.seconds
         if fitted.warnings:
             outcome.summary["warnings"] = fitted.warnings

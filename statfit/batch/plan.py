@@ -11,6 +11,7 @@ from pathlib import Path
 from statfit.errors import StatfitError
 
 GLOB_CHARACTERS = frozenset("*?[")
+STEM = "{stem}"     # in a companion-file template: the input's file name without its extension
 
 
 @dataclass(frozen=True)
@@ -75,3 +76,18 @@ def file_digest(path: Path) -> str:
         while block := handle.read(1 << 20):
             digest.update(block)
     return digest.hexdigest()
+
+
+def check_companion_template(template: str, option: str) -> str:
+    """``template`` if it names one file per input (it holds ``{stem}``), else a one-line refusal."""
+    if STEM not in template:
+        raise StatfitError(f"{option} names each scan's own file with {STEM}, the scan's name without its "
+                           f"extension (e.g. '{STEM}.pts', beside each scan); got {template!r}")
+    return template
+
+
+def companion_file(source: Path, template: str) -> Path:
+    """The file ``template`` names for the input ``source``: ``{stem}`` replaced by its name without
+    its extension; relative to the input's folder unless absolute (``{stem}.pts``: beside it)."""
+    path = Path(template.replace(STEM, source.stem))
+    return path if path.is_absolute() else source.parent / path

@@ -10,6 +10,7 @@ fewer where the workers would otherwise idle); a group that kills its worker or 
 """
 from __future__ import annotations
 
+import hashlib
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -20,7 +21,7 @@ from typing import Any, Callable
 from statfit.batch.engines import Engine, WorkerLost
 from statfit.batch.fits import FitJob, Outcome, run_group, run_job
 from statfit.batch.manifest import MANIFEST_NAME, Manifest, is_current, latest_fits, read_rows, settings_key
-from statfit.batch.plan import Item, file_digest
+from statfit.batch.plan import Item, companion_file, file_digest
 from statfit.errors import StatfitError
 from statfit.io.mesh import write_atomic
 
@@ -79,16 +80,24 @@ class _Recorder:
             self.on_row(row)
 
 
-def plan_work(items: list[Item], out_dir: Path, key: str, force: bool
+def plan_work(items: list[Item], out_dir: Path, key: str, force: bool, landmarks: str | None = None
               ) -> tuple[list[tuple[Item, str | None]], list[tuple[Item, str]], int]:
-    """(to fit with its digest, unreadable with the reason, number already done)."""
+    """(to fit with its digest, unreadable with the reason, number already done). With a
+    ``landmarks`` template (:func:`statfit.batch.plan.companion_file`), an input's digest covers its
+    landmarks file too, so a changed file is fitted again; an input without one is unreadable."""
     latest = latest_fits(read_rows(out_dir / MANIFEST_NAME))
     todo, unreadable, skipped = [], [], 0
     for item in items:
+        companion = companion_file(item.source, landmarks) if landmarks is not None else None
         try:
             digest = file_digest(item.source)
+            if companion is not None:
+                if not companion.is_file():
+                    unreadable.append((item, f"no landmarks file {companion} for {item.source}"))
+                    continue
+                digest = hashlib.sha256(f"{digest} {file_digest(companion)}".encode()).hexdigest()
         except OSError as exc:
-            unreadable.append((item, f"cannot read {item.source}: {exc.strerror}"))
+            unreadable.append((item, f"cannot read {exc.filename or item.source}: {exc.strerror}"))
             continue
         if not force and is_current(latest.get(item.identity), key, digest, out_dir):
             skipped += 1
@@ -114,7 +123,7 @@ def run_batch(items: list[Item], job: FitJob, out_dir: Path, engine: Engine, *, 
     with Manifest(out_dir / MANIFEST_NAME) as manifest:
         for stale in out_dir.rglob(".statfit-*.tmp"):  # a killed run's half-written output; ours alone (locked)
             stale.unlink(missing_ok=True)
-        todo, unreadable, report.skipped = plan_work(items, out_dir, key, force)
+        todo, unreadable, report.skipped = plan_work(items, out_dir, key, force, job.landmarks)
         manifest.append(dict(event="run", started=_now(), key=key, settings=job.settings(),
                              inputs=[item.identity for item in items]))
         if on_start is not None:
