@@ -257,4 +257,4 @@ def info(
     if {LIGHT_LANDMARKS, LIGHT_FACE_COUNT} & set(report["unread_keys"]):
         print(f"{LIGHT_LANDMARKS} and {LIGHT_FACE_COUNT} (the light ICT-FaceKit layout) are not read by fitting "
               f"commands; `statfit model import {model_path} -o OUT.npz` stores them as the model's landmarks and "
-              "face region.")
+              "face geometry (region face_geometry).")

@@ -186,10 +186,11 @@ def test_the_light_ict_layouts_landmarks_and_face_are_named_by_info_and_kept_by_
     assert code == 0 and f"statfit model import {light} -o OUT.npz" in out.replace("\n", "")
     code, out, err = run(["model", "import", str(light), "-o", str(tmp_path / "imported.npz")], capsys)
     assert code == 0, err
-    assert f"{landmarks.size} landmarks, regions face" in out
+    assert f"{landmarks.size} landmarks, regions face_geometry" in out
     imported = load_model(tmp_path / "imported.npz")
     np.testing.assert_array_equal(imported.landmarks, landmarks)
-    np.testing.assert_array_equal(imported.regions["face"], np.arange(40))
+    np.testing.assert_array_equal(imported.regions["face_geometry"], np.arange(40))
+    assert "face" not in imported.regions  # the hair rules' face stays the landmarks' neighbourhood
     code, out, _ = run(["model", "info", str(tmp_path / "imported.npz"), "--json"], capsys)
     assert json.loads(out)["unread_keys"] == [] and json.loads(out)["landmarks"] == landmarks.size
     # the user's own landmark file wins over the file's

@@ -21,9 +21,13 @@ CONTRACT_KEYS = ("v_template", "faces", "shapedirs")
 # What a statfit npz holds besides: read by every command (``load_model``).
 OPTIONAL_KEYS = ("landmarks", "kind")
 # The light ICT-FaceKit npz (../shared/data/ict-face, its README): its 68 Multi-PIE landmark vertices and
-# the face geometry's vertex count (the face is vertices [0, count)). ``model import`` stores them as the
-# contract's ``landmarks`` and ``region_face``; a plain load leaves them out, as any key it does not read.
-LIGHT_LANDMARKS, LIGHT_FACE_COUNT = "landmarks68", "face_vertex_count"
+# the face geometry's vertex count (vertices [0, count)). ``model import`` stores them as the contract's
+# ``landmarks`` and ``region_face_geometry``; a plain load leaves them out, as any key it does not read.
+# Not as ``region_face``: the hair rules of a cluttered scan take a ``face`` region as the face
+# (statfit.model.statmodel.face_triangles), and ICT's face geometry reaches over the forehead to the
+# scalp and ears — the face error of cluttered ICT scans was 0.96 mm with it as ``face`` against 0.39 mm
+# with the landmarks alone (4 people, 50% clutter; studies/face_region_clutter.py).
+LIGHT_LANDMARKS, LIGHT_FACE_COUNT, LIGHT_FACE_REGION = "landmarks68", "face_vertex_count", "face_geometry"
 FORMATS = "a statfit model npz, a FLAME/SMPL-X/SMPL pickle or npz, an ICT-FaceKit folder or a BFM 2017 h5 file"
 
 
@@ -99,16 +103,16 @@ def unread_npz_keys(path: str | Path) -> list[str]:
 
 
 def _with_light_keys(model: StatModel, path: Path) -> StatModel:
-    """``model`` with the light ICT-FaceKit npz's landmarks and face region, where it has them and not
-    the contract's own."""
+    """``model`` with the light ICT-FaceKit npz's landmarks and face geometry (as the region
+    ``face_geometry``), where it has them and not the contract's own."""
     _, arrays = _read_npz(path, (LIGHT_LANDMARKS, LIGHT_FACE_COUNT))
     if LIGHT_LANDMARKS in arrays and model.landmarks is None:
         model = with_landmarks(model, arrays[LIGHT_LANDMARKS], f"{path}: {LIGHT_LANDMARKS}")
-    if LIGHT_FACE_COUNT in arrays and "face" not in model.regions:
+    if LIGHT_FACE_COUNT in arrays and LIGHT_FACE_REGION not in model.regions:
         count = np.asarray(arrays[LIGHT_FACE_COUNT])
         if count.shape != () or not np.issubdtype(count.dtype, np.integer) or not 0 < int(count) <= model.num_vertices:
             raise StatfitError(f"{path}: {LIGHT_FACE_COUNT} must be one whole number in 1..{model.num_vertices}")
-        model = with_regions(model, {"face": np.arange(int(count))}, f"{path}: {LIGHT_FACE_COUNT}")
+        model = with_regions(model, {LIGHT_FACE_REGION: np.arange(int(count))}, f"{path}: {LIGHT_FACE_COUNT}")
     return model
 
 
