@@ -6,14 +6,14 @@ import sys
 import time
 import warnings
 from contextlib import contextmanager
-from typing import Iterator
+from typing import Callable, Iterator
 
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from statfit.errors import StatfitError
-from statfit.core.methods import METHODS
+from statfit.core.methods import LANDMARK_WEIGHT, METHODS, landmark_weight as method_landmark_weight
 
 stderr = Console(stderr=True)
 
@@ -72,6 +72,11 @@ ParamsOption = typer.Option(None, "--params", help="Also write the fit's code in
                             "the modes do not explain; `statfit model sample --params FILE` remakes the mesh "
                             "(docs/formats.md, \"Params file\"). E.g. --params fit.params.json", show_default=False)
 QuietOption = typer.Option(False, "--quiet", "-q", help="No progress bar.")
+LandmarkWeightOption = typer.Option(None, help="Weight of the landmark term against the scan's mean squared distance "
+                                    "(robust: beyond ~5% of the model's radius off its place, a landmark pulls less the "
+                                    "farther it is); 0: the start only.  [default: the method's: "
+                                    f"{LANDMARK_WEIGHT:g}; pca {method_landmark_weight('pca'):g}]",
+                                    callback=within(0, 1e6), show_default=False)
 JsonOption = typer.Option(False, "--json", help="Print each fit's summary as a JSON line on stdout.")
 IterationsOption = typer.Option(None, help="Iterations (all stages together). Default: the method's.",
                                 show_default=False)
@@ -106,20 +111,35 @@ SilhouetteOption = typer.Option("auto", help="The silhouette term: two-sided (th
 PROGRESS_LINE_SECONDS = 5.0
 
 
-def _progress_lines(total: int, label: str):
-    """``advance(iteration, terms)`` printing "label: iteration i/total, loss L, Ns" now and then."""
+def _now_and_then(label: str) -> Callable[[Callable[[], str]], None]:
+    """``say(text)``: print "statfit: label: text(), Ns" on stderr if ``PROGRESS_LINE_SECONDS`` have
+    passed since the last line (``text`` is only called then)."""
     started = last = time.perf_counter()
 
-    def advance(iteration: int, terms: dict[str, float]) -> None:
+    def say(text: Callable[[], str]) -> None:
         nonlocal last
         now = time.perf_counter()
         if now - last >= PROGRESS_LINE_SECONDS:
             last = now
-            print(f"statfit: {label}: iteration {iteration + 1}/{max(total, iteration + 1)}, "
-                  f"loss {terms.get('total', float('nan')):.4g}, "
-                  f"{now - started:.0f} s", file=sys.stderr, flush=True)
+            print(f"statfit: {label}: {text()}, {now - started:.0f} s", file=sys.stderr, flush=True)
 
-    return advance
+    return say
+
+
+def _progress_lines(total: int, label: str):
+    """``advance(iteration, terms)`` printing "label: iteration i/total, loss L, Ns" now and then."""
+    say = _now_and_then(label)
+    return lambda iteration, terms: say(lambda: f"iteration {iteration + 1}/{max(total, iteration + 1)}, "
+                                                f"loss {terms.get('total', float('nan')):.4g}")
+
+
+@contextmanager
+def _rich_bar(label: str, total: int | None, *fields: TextColumn):
+    """A transient rich progress bar on stderr with ``fields`` after the count; yields (progress, task)."""
+    columns = (TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"), *fields,
+               TimeElapsedColumn(), TimeRemainingColumn())
+    with Progress(*columns, console=stderr, transient=True) as progress:
+        yield progress, progress.add_task(label, total=total, loss="-")
 
 
 def warn(message: str) -> None:
@@ -146,10 +166,7 @@ def progress_bar(total: int, label: str, enabled: bool):
     if not sys.stderr.isatty():
         yield _progress_lines(total, label)
         return
-    columns = (TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-               TextColumn("loss {task.fields[loss]}"), TimeElapsedColumn(), TimeRemainingColumn())
-    with Progress(*columns, console=stderr, transient=True) as progress:
-        task = progress.add_task(label, total=total, loss="-")
+    with _rich_bar(label, total, TextColumn("loss {task.fields[loss]}")) as (progress, task):
 
         def advance(iteration: int, terms: dict[str, float]) -> None:
             # a refit (register's fallback) runs past the planned total: the bar grows with it
@@ -168,21 +185,10 @@ def count_bar(label: str, enabled: bool):
         yield lambda done, total: None
         return
     if not sys.stderr.isatty():
-        started = last = time.perf_counter()
-
-        def line(done: int, total: int) -> None:
-            nonlocal last
-            now = time.perf_counter()
-            if now - last >= PROGRESS_LINE_SECONDS:
-                last = now
-                print(f"statfit: {label}: {done}/{total}, {now - started:.0f} s", file=sys.stderr, flush=True)
-
-        yield line
+        say = _now_and_then(label)
+        yield lambda done, total: say(lambda: f"{done}/{total}")
         return
-    columns = (TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-               TimeElapsedColumn(), TimeRemainingColumn())
-    with Progress(*columns, console=stderr, transient=True) as progress:
-        task = progress.add_task(label, total=None)
+    with _rich_bar(label, None) as (progress, task):
         yield lambda done, total: progress.update(task, completed=done, total=total)
 
 

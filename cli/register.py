@@ -10,17 +10,16 @@ from statfit.io.files import existing_file
 from statfit.io.mesh import check_writable, load_scan, mesh_bytes, mesh_format
 from statfit.io.landmarks import read_landmarks
 from statfit.core.device import resolve_device
-from statfit.core.methods import (LANDMARK_WEIGHT, fallback as method_fallback,
-                                  landmark_weight as method_landmark_weight, resolve)
+from statfit.core.methods import fallback as method_fallback, landmark_weight as method_landmark_weight, resolve
 from statfit.registration.job import register as fit_scan
 from statfit.model.importers.cache import open_model
 from statfit.geometry.support import scan_support
 from statfit.model.params import project, vertex_fields
 from statfit.model.params_file import params_bytes, params_suffix
 from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, FallbackOption, IterationsOption, JsonOption,
-                                KOption, LamOption, LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption,
-                                ModelOption, ParamsOption, PowerOption, PresetOption, QuietOption, SeedOption,
-                                ThreadsOption, clutter_choice, setting_overrides, within)
+                                KOption, LamOption, LandmarkWeightOption, LaplacianOption, LogOption, LrOption,
+                                MethodOption, ModeGainOption, ModelOption, ParamsOption, PowerOption, PresetOption,
+                                QuietOption, SeedOption, ThreadsOption, clutter_choice, setting_overrides, within)
 from statfit_cli.runner import finish, fit_run
 
 
@@ -49,11 +48,7 @@ def register(
                                    "or units), which --align auto then polishes on the scan (rigid pose and every mode; "
                                    "none keeps it, rigid/similarity refine it by ICP), and stay a fit term.",
                                    show_default=False),
-    landmark_weight: float = typer.Option(None, help="Weight of the landmark term against the scan's mean "
-                                          "squared distance (robust: beyond ~5% of the model's radius off its place, a "
-                                          "landmark pulls less the farther it is); 0: the start only.  [default: the "
-                                          f"method's: {LANDMARK_WEIGHT:g}; pca {method_landmark_weight('pca'):g}]",
-                                          callback=within(0, 1e6), show_default=False),
+    landmark_weight: float = LandmarkWeightOption,
     clutter: str = ClutterOption,
     device: str = DeviceOption,
     threads: int = ThreadsOption,

@@ -17,9 +17,9 @@ from statfit_cli.batch.options import (BatchThreadsOption, ClusterOption, ForceO
                                        OutDirOption, SchedulerOption, TimeoutOption, WorkersOption)
 from statfit_cli.batch.running import check_engine, model_identity, prepared_inputs, run_fits
 from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, FallbackOption, IterationsOption, KOption,
-                                LamOption, LaplacianOption, LrOption, MethodOption, ModeGainOption, ModelOption,
-                                PowerOption, PresetOption, QuietOption, SeedOption, clutter_choice, setting_overrides,
-                                within)
+                                LamOption, LandmarkWeightOption, LaplacianOption, LrOption, MethodOption,
+                                ModeGainOption, ModelOption, PowerOption, PresetOption, QuietOption, SeedOption,
+                                clutter_choice, setting_overrides, within)
 
 
 def batch_register(
@@ -50,9 +50,7 @@ def batch_register(
                                   "'/data/lm/{stem}.txt'). Rows and use as for `statfit register --landmarks`. A "
                                   "scan without its file fails alone; a changed file is fitted again on a rerun.",
                                   show_default=False),
-    landmark_weight: float = typer.Option(None, help="Weight of the landmark term (see `statfit register --help`); "
-                                          "0: the landmarks place the start only.  [default: the method's]",
-                                          callback=within(0, 1e6), show_default=False),
+    landmark_weight: float = LandmarkWeightOption,
     clutter: str = ClutterOption,
     device: str = DeviceOption,
     threads: int = BatchThreadsOption,

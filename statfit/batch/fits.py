@@ -214,7 +214,7 @@ def run_group(job: FitJob, sources: list[str]) -> list[Outcome]:
     for index, source in enumerate(sources):
         try:
             observed[index] = _read(job, source)
-            landmarks[index] = _landmarks(job, source) if job.command == "register" else None
+            landmarks[index] = _landmarks(job, source)     # None unless a register job names them
         except Exception as exc:  # noqa: BLE001 - this input's one line, the others go on
             observed.pop(index, None)
             outcomes[index] = Outcome(None, {}, one_line(exc), 0.0)

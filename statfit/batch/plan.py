@@ -78,12 +78,11 @@ def file_digest(path: Path) -> str:
     return digest.hexdigest()
 
 
-def check_companion_template(template: str, option: str) -> str:
-    """``template`` if it names one file per input (it holds ``{stem}``), else a one-line refusal."""
+def check_companion_template(template: str, option: str) -> None:
+    """Refuse, in one line, a ``template`` that does not name one file per input (no ``{stem}``)."""
     if STEM not in template:
         raise StatfitError(f"{option} names each scan's own file with {STEM}, the scan's name without its "
                            f"extension (e.g. '{STEM}.pts', beside each scan); got {template!r}")
-    return template
 
 
 def companion_file(source: Path, template: str) -> Path:
