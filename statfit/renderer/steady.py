@@ -252,7 +252,7 @@ class SteadyRenderer:
         box solves for its span of covered pixel centres; the covered pixels are enumerated. No
         gradient."""
         count = self.count
-        low, high = torch.aminmax(corner[:2], dim=1)                                     # (2, F) each
+        low, high = corner[:2].amin(dim=1), corner[:2].amax(dim=1)       # (2, F) each; aminmax: ~20× slower on a CPU
         first = (low - 0.5).ceil_().clamp_min_(0)
         size = ((high - 0.5).floor_().minimum(self._last_pixel) - first + 1).clamp_min_(0)   # cols, rows
         rel = corner[:2] - (first + 0.5)[:, None]                                       # (2, 3, F)
@@ -269,7 +269,7 @@ class SteadyRenderer:
             origin += self._view_origin
         integers = torch.nn.functional.pad(torch.stack([cols, origin]), (0, 1))
         floats = torch.nn.functional.pad(planes.view(9, count), (0, 1))
-        width, origin = integers.index_select(1, owner)
+        width, origin = _columns(integers, owner)
         value, slope_x, slope_y = floats.index_select(1, owner).view(3, 3, -1)          # (3, R) each
         start = torch.addcmul(value, slope_y, dy.to(value.dtype))
         span_first, span_count = _row_span(start, slope_x, width.to(value.dtype))
@@ -278,7 +278,7 @@ class SteadyRenderer:
         depth_table = torch.stack([torch.addcmul(inverse[0], span_first.to(value.dtype), inverse[1]), inverse[1]])
         # Covered pixels of the rows.
         row, dx, pixels_need = self._owners(torch.where(owner < count, span_count, 0), "candidates")
-        base, triangle = torch.nn.functional.pad(rows_table, (0, 1), value=self.pixels).index_select(1, row)
+        base, triangle = _columns(torch.nn.functional.pad(rows_table, (0, 1), value=self.pixels), row)
         inverse_start, inverse_step = torch.nn.functional.pad(depth_table, (0, 1), value=1.0).index_select(1, row)
         depth_bits = torch.addcmul(inverse_start, dx.to(inverse_step.dtype), inverse_step).reciprocal_().float()
         key = depth_bits.view(torch.int32).long().bitwise_left_shift_(32).bitwise_or_(triangle)
@@ -343,3 +343,8 @@ class SteadyRenderer:
             source = torch.where(near_inner, outer, inner)
         return target, source, weight
 
+
+def _columns(table: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """``table.index_select(1, index)`` for a table (C, L) of integers: as a ``gather``, which a CPU
+    runs ~3× faster for them (its ``index_select`` along columns of integers is a slow path)."""
+    return table.gather(1, index.expand(len(table), -1))

@@ -33,7 +33,7 @@ class _PixelNormals(torch.autograd.Function):
         # e_k(q) = a_k + q_x (y_j − y_k) − q_y (x_j − x_k): terms a, x_j − x_k, y_j − y_k (3, 3, F+1)
         terms = torch.cat([(rel_j[0] * rel_k[1] - rel_k[0] * rel_j[1])[None], rel_j - rel_k])
         w = at[3:] / at[2]                                                              # n_k / z_k (3, 3, F+1)
-        planes = (w[None] * terms[:, None]).sum(dim=2)                                  # (3 terms, 3, F+1)
+        planes = _corner_sum(terms[:, None], w[None], 2)                                 # (3 terms, 3, F+1)
         per_pixel = planes.view(9, -1).index_select(1, face).view(3, 3, -1)             # (3 terms, 3, M)
         summed = torch.addcmul(per_pixel[0], per_pixel[2], offset[0]).addcmul_(per_pixel[1], offset[1], value=-1)
         scale = (summed * summed).sum(dim=0).clamp_min(torch.finfo(summed.dtype).tiny).rsqrt() * sign
@@ -48,17 +48,28 @@ class _PixelNormals(torch.autograd.Function):
         along = scale * (grad - normals * (normals * grad).sum(dim=0))                 # d/d summed (3, M)
         per_pixel = torch.cat([along, along * offset[1], along * offset[0]])            # d/d planes (9, M)
         per_pixel[3:6].neg_()
-        planes = per_pixel.new_zeros(9, w.shape[2]).index_add_(1, face, per_pixel).view(3, 3, 1, -1)
-        grad_w = (planes * terms[:, None]).sum(dim=0)                                   # (3, 3, F+1)
-        grad_a, grad_d = (planes * w[None]).sum(dim=1).split([1, 2])                    # (1 | 2, 3, F+1)
+        planes = per_pixel.new_zeros(9, w.shape[2]).index_add_(1, face, per_pixel).view(3, 3, -1)
+        grad_w = _corner_sum(planes[:, :, None], terms[:, None], dim=0)                # (3, 3, F+1)
+        grad_a, grad_d = _corner_sum(planes[:, :, None], w[None]).split([1, 2])       # (1 | 2, 3, F+1)
         # a = x_j y_k − x_k y_j; d = rel_j − rel_k; perp(v) = (v_y, −v_x).
         grad_j = torch.addcmul(grad_d, grad_a, _perp(rel_k))
-        grad_k = torch.addcmul(grad_d, grad_a, _perp(rel_j)).neg_()
-        grad_rel = grad_j.roll(1, 1).add_(grad_k.roll(2, 1))                            # (2, 3, F+1)
-        grads = torch.cat([grad_rel, -(grad_w * w).sum(dim=0, keepdim=True) / at[2], grad_w / at[2]])
-        grad_data = grads.new_zeros(6, ctx.vertices).index_add_(1, corners.view(3, -1)[:, :-1].reshape(-1),
-                                                                grads[..., :-1].reshape(6, -1))
+        minus_grad_k = torch.addcmul(grad_d, grad_a, _perp(rel_j))
+        grads = torch.empty(6, *w.shape[1:], dtype=w.dtype, device=w.device)
+        torch.sub(grad_j.roll(1, 1), minus_grad_k.roll(2, 1), out=grads[:2])          # d/d rel (2, 3, F+1)
+        torch.sum(grad_w * w, dim=0, out=grads[2]).div_(at[2]).neg_()                  # d/d depth
+        torch.div(grad_w, at[2], out=grads[3:])                                         # d/d normal
+        # Triangle F (vertex 0 thrice) adds zeros (the dump slots, its pixels, get no gradient: no term
+        # or blend reads them), so all rows are added as they lie: no copy of the others'.
+        grad_data = grads.new_zeros(6, ctx.vertices).index_add_(1, corners, grads.view(6, -1))
         return grad_data, None, None, None, None
+
+
+def _corner_sum(a: torch.Tensor, b: torch.Tensor, dim: int = 1) -> torch.Tensor:
+    """Σ_k a_k b_k over a size-3 axis ``dim`` of the broadcast a · b (the axis dropped), as three
+    products added in order (the bits of ``(a * b).sum(dim)``, without making that product, 3× the
+    result's size; not ``addcmul``, which rounds otherwise)."""
+    a, b = a.unbind(dim), b.unbind(dim)
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
 def _perp(v: torch.Tensor) -> torch.Tensor:
@@ -191,7 +202,7 @@ def walk_to_silhouette(ring_table: torch.Tensor, count: int, start: torch.Tensor
     position = direction[:, None] * (aj * bk - ak * bj) / torch.where(crosses, bk - bj, 1.0)
     position, edge = torch.where(crosses, position, -torch.inf).max(dim=0)          # (K, 13)
     leaves = (position > -_EPS) & (position < 1 + _EPS)
-    facts = fact_table.index_select(1, ring.view(-1)).view(3, *ring.shape).gather(0, edge[None])[0]
+    facts = fact_table.view(-1).index_select(0, (edge * fact_table.shape[1] + ring).view(-1)).view(ring.shape)
     stop = leaves & ((facts & 3) != 0)
     state = torch.stack([stop & ((facts >> torch.where(horizontal, 1, 0)) & 1 != 0),  # found here
                          leaves & ~stop & (facts < 4 * count), edge])               # walk on; edge
