@@ -68,3 +68,18 @@ def test_the_same_gradients(scene):
     steady = gradients(lambda x: _steady(x, faces, camera))
     assert general.abs().max() > 1.0
     np.testing.assert_allclose(steady.numpy(), general.numpy(), atol=1e-8 * float(general.abs().max()))
+
+
+def test_the_products_over_corners_are_the_bits_of_the_whole_product_summed():
+    """The pixel normals' set-up and backward sum three products in order instead of making the
+    whole broadcast product and summing it: float32 results must be the same to the bit, so fits
+    on a CPU stay bit-identical (docs/benchmarks.md §12, session 21)."""
+    from statfit.renderer.steady_parts import _corner_sum
+
+    generator = torch.Generator().manual_seed(5)
+    terms, w = (torch.randn(3, 3, 1001, generator=generator) for _ in range(2))
+    assert torch.equal(_corner_sum(terms[:, None], w[None], 2), (w[None] * terms[:, None]).sum(dim=2))
+    planes = torch.randn(3, 3, 1001, generator=generator)
+    assert torch.equal(_corner_sum(planes[:, :, None], terms[:, None], dim=0),
+                       (planes[:, :, None] * terms[:, None]).sum(dim=0))
+    assert torch.equal(_corner_sum(planes[:, :, None], w[None]), (planes[:, :, None] * w[None]).sum(dim=1))
