@@ -34,7 +34,7 @@ def _steady(vertices, faces, camera):
     col = view.pixel[real] % renderer.stride - 1
     normals = vertices.new_zeros(camera.height, camera.width, 3)
     normals = normals.index_put((row, col), view.blended_normals()[:, real].T)
-    coverage = view.blended_coverage(len(faces), torch.float64)[:renderer.pixels]
+    coverage = view.blended_coverage(torch.float64)[:renderer.pixels]
     coverage = coverage.view(camera.height + 2, camera.width + 2)[1:-1, 1:-1]
     covered = torch.zeros(camera.height, camera.width, dtype=torch.bool)
     covered[row, col] = True

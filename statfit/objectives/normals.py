@@ -77,7 +77,6 @@ class NormalMapObjective:
         padded[:3, :, 1:-1, 1:-1] = normals.permute(3, 0, 1, 2)
         padded[3, :, 1:-1, 1:-1] = self.mask
         self._target = torch.nn.functional.pad(padded.view(4, -1), (0, width + 3))    # (4, E)
-        self._target_rows = self._target.T.contiguous()                                 # (E, 4)
         self._region = torch.ones(views * len(faces) + 1, dtype=normals.dtype, device=normals.device)
         self._region[-1] = 0
         if region_faces is not None:
@@ -119,7 +118,6 @@ class NormalMapObjective:
             self._renderer = SteadyRenderer(self.faces, self.camera, self.adjacency, vertices.dtype,
                                             vertex_count=vertices.shape[-2])
             self._target = self._target.to(vertices.dtype)
-            self._target_rows = self._target_rows.to(vertices.dtype)
             self._region = self._region.to(vertices.dtype)
             if self.views is not None:
                 self._silhouette_scale = self._silhouette_scale.to(vertices.dtype)
@@ -129,7 +127,7 @@ class NormalMapObjective:
         """The target's rows (4, M) at the view's covered pixels (before antialiasing), and whether
         the target covers them too and, with a region, they show one of its triangles (M,)."""
         with torch.no_grad():
-            target = self._target_rows.index_select(0, view.pixel).T
+            target = self._target.index_select(1, view.pixel)     # (4, E) by columns: 2× faster on a CPU than rows (E, 4)
             return target, target[3] * self._region.index_select(0, view.face)
 
     def _single(self, vertices: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -140,7 +138,7 @@ class NormalMapObjective:
         normal = ((normals - target[:3]).abs().sum(dim=0) * both).sum() / both.sum().clamp_min(1.0)
         terms = {"normal": normal}
         if self.silhouette_weight:
-            coverage = view.blended_coverage(len(self.faces), vertices.dtype)[:pixels]
+            coverage = view.blended_coverage(vertices.dtype)[:pixels]
             terms["silhouette"] = self._silhouette_difference(coverage - self._target[3, :pixels]).square().sum() \
                 * (self.silhouette_weight / self.count)
         return terms
@@ -156,7 +154,7 @@ class NormalMapObjective:
         sums = error.new_zeros(2, views + 1).index_add(1, owner, torch.stack([error, both]))
         terms = {"normal": sums[0, :views] / sums[1, :views].clamp_min(1.0)}
         if self.silhouette_weight:
-            coverage = view.blended_coverage(self._renderer.count, vertices.dtype)[:pixels]
+            coverage = view.blended_coverage(vertices.dtype)[:pixels]
             squares = self._silhouette_difference(coverage - self._target[3, :pixels]).square()
             terms["silhouette"] = (squares * self._silhouette_scale).view(views, -1).sum(dim=1)
         return terms

@@ -187,8 +187,7 @@ class SteadyRenderer:
             triangle = keys.bitwise_and(_LOW32).clamp_max_(count)
             covered = triangle < count
             # Covered pixels, ascending, into a buffer of M slots (dump slots: the dump pixel).
-            pixel, running = self._select(covered, "pixels")                             # lanes: pixels
-            slot = torch.where(covered, running - 1, len(pixel)).clamp_max_(len(pixel))   # pixel → slot
+            pixel, running, slot = self._select(covered, "pixels", slot_map=True)      # lanes: pixels; pixel → slot
             pixel.clamp_max_(self.pixels)
             face = triangle.index_select(0, pixel)
             sign = torch.cat([area2.sign(), area2.new_ones(1)]).index_select(0, face)
@@ -202,7 +201,7 @@ class SteadyRenderer:
         target, source, weight = self._crossings(screen, pairs)
         with torch.no_grad():
             slot = slot.index_select(0, torch.cat([target, source])).view(2, -1)         # dump: M
-        return SteadyView(pixel, face, triangle, pixel_normals, target, source, weight, slot)
+        return SteadyView(pixel, face, covered, pixel_normals, target, source, weight, slot)
 
     def _project(self, vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Camera-space points (V, 3), their depths (V, 1) and pixel positions (V, 2) of ``vertices``
@@ -216,20 +215,24 @@ class SteadyRenderer:
         screen = camera_points[..., :2].bmm(self._focal_t) / depth + self._principal
         return camera_points.view(-1, 3), depth.reshape(-1, 1), screen.view(-1, 2)
 
-    def _select(self, flags: torch.Tensor, name: str) -> tuple[torch.Tensor, torch.Tensor]:
+    def _select(self, flags: torch.Tensor, name: str, slot_map: bool = False
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """The indices of the set ``flags`` (L,) bool, ascending, in a buffer of slots (past the
-        last: L), and the running count (L,) (its last entry: the need). On a GPU each slot looks
-        its lane up (``searchsorted`` in the running count): a scatter's many writes to one dump
-        slot serialise under CUDA's deterministic algorithms. On a CPU the scatter is the faster."""
+        last: L), the running count (L,) (its last entry: the need) and, with ``slot_map`` (or on a
+        CPU, where it is made anyway), each lane's slot (L,) (unset lanes: the buffer's size). On a
+        GPU each slot looks its lane up (``searchsorted`` in the running count): a scatter's many
+        writes to one dump slot serialise under CUDA's deterministic algorithms. On a CPU the
+        scatter is the faster."""
         running = torch.cumsum(flags, 0)
         slots = self._size(name, running[-1])
-        if self.device.type != "cpu":
+        on_cpu = self.device.type == "cpu"
+        slot = torch.where(flags, running - 1, slots).clamp_max_(slots) if slot_map or on_cpu else None
+        if not on_cpu:
             if ("from 1", slots) not in self._aranges:
                 self._aranges["from 1", slots] = torch.arange(1, slots + 1, dtype=torch.long, device=self.device)
-            return torch.searchsorted(running, self._aranges["from 1", slots]), running
-        slot = torch.where(flags, running - 1, slots).clamp_max_(slots)
+            return torch.searchsorted(running, self._aranges["from 1", slots]), running, slot
         lanes = torch.full((slots + 1,), len(flags), dtype=torch.long, device=self.device)
-        return lanes.scatter_(0, slot, self._arange(len(flags)))[:slots], running
+        return lanes.scatter_(0, slot, self._arange(len(flags)))[:slots], running, slot
 
     def _owners(self, counts: torch.Tensor, name: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Enumerate (owner, index) pairs, 0 ≤ index < counts[owner], into a buffer of slots: owner
@@ -305,7 +308,7 @@ class SteadyRenderer:
         # Only the covered pixels whose triangle lies within two edge steps of a silhouette edge
         # start a pair: those, into a buffer of their own (dump: the dump pixel, triangle F).
         near = code.index_select(0, face) != 0
-        lane, running = self._select(near, "edges")
+        lane, running, _ = self._select(near, "edges")
         pixel = torch.nn.functional.pad(pixel, (0, 1), value=self.pixels).index_select(0, lane)
         face = torch.nn.functional.pad(face, (0, 1), value=count).index_select(0, lane)
         edges_need, slots_m = running[-1], len(lane)
@@ -317,7 +320,7 @@ class SteadyRenderer:
         differ = (key_q & _LOW32) != (key_p & _LOW32)
         found = front & differ & self._in_image.index_select(0, neighbour.view(-1)).view(4, -1)
         found &= (code.index_select(0, face) >> self._axis_bits).bitwise_and_(1) != 0
-        chosen, running = self._select(found.view(-1), "pairs")                        # 4M: masked
+        chosen, running, _ = self._select(found.view(-1), "pairs")                     # 4M: masked
         lanes = 4 * slots_m
         direction_id = chosen.div(slots_m, rounding_mode="floor")                      # 4: masked
         m = chosen - direction_id * slots_m

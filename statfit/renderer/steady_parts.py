@@ -138,14 +138,14 @@ class SteadyView:
     """One call's result: the covered pixels and their normals, and the silhouette blends.
 
     pixel: (M,) padded flat indices of the covered pixels, ascending (dump slots: the dump pixel);
-    face: (M,) their triangles (F: none); triangle: (extent,) per padded pixel (F: background);
+    face: (M,) their triangles (F: none); covered: (extent,) bool, whether a padded pixel shows a triangle;
     normals: (3, M) unit camera-space normals, not antialiased, differentiable; target, source,
     weight: (K,) blends (masked: target the dump pixel); slot: (2, K) the slots in ``pixel`` of
     target and source (M: not covered).
     """
 
-    def __init__(self, pixel, face, triangle, normals, target, source, weight, slot):
-        self.pixel, self.face, self.triangle, self.normals = pixel, face, triangle, normals
+    def __init__(self, pixel, face, covered, normals, target, source, weight, slot):
+        self.pixel, self.face, self.covered, self.normals = pixel, face, covered, normals
         self.target, self.source, self.weight, self.slot = target, source, weight, slot
 
     def blended_normals(self) -> torch.Tensor:
@@ -154,10 +154,10 @@ class SteadyView:
         padded = torch.nn.functional.pad(self.normals, (0, 1))
         return _BlendColumns.apply(padded, self.slot[0], self.slot[1], self.weight)[:, :-1]
 
-    def blended_coverage(self, count: int, dtype: torch.dtype) -> torch.Tensor:
-        """The coverage (extent,) antialiased; differentiable w.r.t. the weights. count: F."""
+    def blended_coverage(self, dtype: torch.dtype) -> torch.Tensor:
+        """The coverage (extent,) antialiased; differentiable w.r.t. the weights."""
         with torch.no_grad():
-            covered = (self.triangle < count).to(dtype)
+            covered = self.covered.to(dtype)
             difference = covered.index_select(0, self.source) - covered.index_select(0, self.target)
         return covered.index_add(0, self.target, self.weight * difference)
 
