@@ -1,7 +1,7 @@
 """The pieces of :class:`statfit.renderer.steady.SteadyRenderer` with gradients: per-pixel normals and
 silhouette crossing weights with hand-written backward passes, the view it returns and its blends,
-vertex normals and silhouette flags; the walk from a pixel pair to its silhouette edge; the copies of
-a mesh that one renderer draws for many views.
+vertex normals and silhouette flags; the walk from a pixel pair to its silhouette edge; gathers of
+integer tables by columns; the copies of a mesh that one renderer draws for many views.
 """
 from __future__ import annotations
 
@@ -71,6 +71,11 @@ def _corner_sum(a: torch.Tensor, b: torch.Tensor, dim: int = 1) -> torch.Tensor:
     a, b = a.unbind(dim), b.unbind(dim)
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
+
+def _columns(table: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """``table.index_select(1, index)`` for a table (C, L) of integers: as a ``gather``, which a CPU
+    runs ~3× faster for them (its ``index_select`` along columns of integers is a slow path)."""
+    return table.gather(1, index.expand(len(table), -1))
 
 def _perp(v: torch.Tensor) -> torch.Tensor:
     """(v_y, −v_x) of v (2, ...): a new tensor (no constant to move to the device every call)."""
