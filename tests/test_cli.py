@@ -77,7 +77,10 @@ def test_stdin_to_stdout(scan_files, tmp_path):
 
 
 def test_millimetres_and_metres_give_the_same_relative_error(scan_files, tmp_path, capsys):
-    """The embedded model is in metres; the same model and scan scaled to millimetres must fit the same."""
+    """The embedded model is in metres; the same model and scan scaled to millimetres must fit the same:
+    to rounding without the pose search (the maths has no units), and within 2% with it, where the
+    trimmed subsets of its polish can differ by a point under other rounding (1.1% with numpy 1.26
+    and scipy 1.11, pyproject's oldest; 0.02% with numpy 2.4)."""
     scan, gt = scan_files
     with np.load(Path(__file__).resolve().parents[1] / "data_templates" / "default_head.npz") as data:
         arrays = {k: data[k] for k in data.files}
@@ -89,13 +92,17 @@ def test_millimetres_and_metres_give_the_same_relative_error(scan_files, tmp_pat
     trimesh.PointCloud(points * 1000).export(tmp_path / "scan_mm.ply")
     gt_mesh = trimesh.load(gt, process=False)
     trimesh.Trimesh(gt_mesh.vertices * 1000, gt_mesh.faces, process=False).export(tmp_path / "gt_mm.ply")
-    errors = []
-    for model, points_file, truth in (("m.npz", scan, gt), ("mm.npz", tmp_path / "scan_mm.ply", tmp_path / "gt_mm.ply")):
-        fit = tmp_path / f"fit_{model}.ply"
-        assert run(["register", str(points_file), "--model", str(tmp_path / model), "--out", str(fit),
-                    "--method", "statistical", *FAST], capsys)[0] == 0
-        errors.append(json.loads(run(["eval", str(fit), str(truth), "--json"], capsys)[1])["all"]["mean_rel"])
-    assert errors[1] == pytest.approx(errors[0], rel=0.01)
+    errors = {}
+    inputs = (("m.npz", scan, gt), ("mm.npz", tmp_path / "scan_mm.ply", tmp_path / "gt_mm.ply"))
+    for align in ("none", "auto"):
+        for model, points_file, truth in inputs:
+            fit = tmp_path / f"fit_{align}_{model}.ply"
+            assert run(["register", str(points_file), "--model", str(tmp_path / model), "--out", str(fit),
+                        "--method", "statistical", "--align", align, *FAST], capsys)[0] == 0
+            evaluated = json.loads(run(["eval", str(fit), str(truth), "--json"], capsys)[1])
+            errors[align, model] = evaluated["all"]["mean_rel"]
+    assert errors["none", "mm.npz"] == pytest.approx(errors["none", "m.npz"], rel=1e-4), errors
+    assert errors["auto", "mm.npz"] == pytest.approx(errors["auto", "m.npz"], rel=0.02), errors
 
 
 def corrupt(path: Path) -> Path:
