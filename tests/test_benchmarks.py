@@ -51,3 +51,22 @@ def test_runner_refuses_unknown_parts(monkeypatch, capsys):
     with pytest.raises(SystemExit) as exit_info:
         run.main()
     assert exit_info.value.code == 2 and "unknown part" in capsys.readouterr().err
+
+
+def test_render_ab_times_a_revisions_objective_beside_this_trees():
+    """benchmarks/render_ab.py against HEAD: where the renderer and objective are HEAD's, the two
+    objectives it times must give the same bits (its imports of the revision's modules work)."""
+    import shutil
+    import subprocess
+
+    import render_ab
+
+    root = Path(__file__).resolve().parents[1]
+    if shutil.which("git") is None or not (root / ".git").exists():
+        pytest.skip("not a git checkout")
+    result = render_ab.main(["--against", "HEAD", "--model", "embedded", "--size", "32", "--rounds", "2"])
+    assert result["revision_modules"] == ("_rev_normals", "_rev_steady")    # the revision's, not this tree's
+    assert all(len(values) == 2 and min(values) > 0 for values in result["times"].values())
+    unchanged = subprocess.run(["git", "-C", str(root), "diff", "--quiet", "HEAD", "--", *render_ab.MODULES.values()])
+    if unchanged.returncode == 0:
+        assert result["same_bits"]
