@@ -31,7 +31,8 @@ fi
 if [ -n "${ICT:-}" ] && [ ! -e ../shared/data/ict-face ]; then
     mkdir -p ../shared/data && ln -s "$(realpath "$ICT")" ../shared/data/ict-face
 fi
-python3 -c "import statfit" 2>/dev/null || python3 -m pip install -q --no-deps --no-build-isolation --no-index -e . || exit 2
+python3 -c "import statfit" 2>/dev/null ||
+    python3 -m pip install -q --no-deps --no-build-isolation --no-index -e . || exit 2
 { nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader 2>/dev/null || echo "no nvidia-smi"
   python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)"; } | tee "$out/machine.txt"
 
@@ -42,7 +43,8 @@ for file in $first; do ignore+=(--ignore "$file"); done
 timeout -s INT -k 30 "$(left $((total - bench)))" python3 -m pytest -q -n "$workers" -p no:cacheprovider $first \
     --junitxml "$out/first.xml" > "$out/first.log" 2>&1
 echo "first files: exit $? ($(tail -1 "$out/first.log"))"
-timeout -s INT -k 30 "$(left $((total - bench)))" python3 -m pytest -q -n "$workers" -p no:cacheprovider tests "${ignore[@]}" \
+timeout -s INT -k 30 "$(left $((total - bench)))" python3 -m pytest -q -n "$workers" -p no:cacheprovider \
+    tests "${ignore[@]}" \
     --junitxml "$out/rest.xml" > "$out/rest.log" 2>&1
 echo "the rest: exit $? ($(tail -1 "$out/rest.log"))"
 grep -h "^FAILED\|^ERROR" "$out/first.log" "$out/rest.log" | head -30

@@ -12,7 +12,8 @@ mkdir -p "$dir"
 packages=(trimesh libigl cholespy OpenEXR embreex pycpd pdoc "typer>=0.28"
           dask distributed partd locket tblib zict tornado)
 platforms=()
-for platform in manylinux_2_28_x86_64 manylinux_2_27_x86_64 manylinux_2_17_x86_64 manylinux2014_x86_64 manylinux1_x86_64; do
+for platform in manylinux_2_28_x86_64 manylinux_2_27_x86_64 manylinux_2_17_x86_64 manylinux2014_x86_64 \
+                manylinux1_x86_64; do
     platforms+=(--platform "$platform")
 done
 for package in "${packages[@]}"; do

@@ -46,10 +46,13 @@ def revision_objective(revision: str, folder: Path) -> type:
         for other, new_name in renamed.items():
             source = source.replace(f"from {other} import", f"from {new_name} import")
         (folder / f"{renamed[name]}.py").write_text(source)
-    sys.path.insert(0, str(folder))
     for new_name in renamed.values():     # another revision's, read earlier in this process
         sys.modules.pop(new_name, None)
-    return importlib.import_module(renamed["statfit.objectives.normals"]).NormalMapObjective
+    sys.path.insert(0, str(folder))
+    try:
+        return importlib.import_module(renamed["statfit.objectives.normals"]).NormalMapObjective
+    finally:
+        sys.path.remove(str(folder))      # the folder goes; the modules stay imported
 
 
 def case(model_name: str, size: int):

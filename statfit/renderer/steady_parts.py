@@ -77,6 +77,7 @@ def _columns(table: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     runs ~3× faster for them (its ``index_select`` along columns of integers is a slow path)."""
     return table.gather(1, index.expand(len(table), -1))
 
+
 def _perp(v: torch.Tensor) -> torch.Tensor:
     """(v_y, −v_x) of v (2, ...): a new tensor (no constant to move to the device every call)."""
     out = v.flip(0)
