@@ -1,6 +1,6 @@
 """The fitting loop's render objective of this tree against a git revision's, side by side in one process.
 
-    python benchmarks/render_ab.py [--against REV] [--size 512] [--rounds 20] [--model ict|embedded]
+    python benchmarks/render_ab.py [--against REV] [--size 512] [--rounds 20] [--model ict|embedded] [--every K]
 
 Issue 38's CPU target is a ratio (a render iteration at 512² on one core ≤ 0.7× a baseline's), and
 separate runs on one machine vary by ±15% (docs/benchmarks.md §12). So both objectives are timed in
@@ -9,7 +9,9 @@ one process on one thread, alternating every 10 calls at the same vertices. The 
 are read with ``git show`` and imported under other names; everything else is this tree's. The case:
 ICT jaw-open (``benchmarks/cases.py``), or a sample of the embedded head (``--model embedded``), seen
 at yaw 20°. Prints each objective's min and median ms per call with its backward, the ratio of the
-medians, and whether the values and gradients are the same bits (``torch.equal``).
+medians, and whether the values and gradients are the same bits (``torch.equal``). ``--every K``: this
+tree's objective refreshes its visibility every K calls (the render default's reuse, docs/method.md;
+the calls between reuse it at the same vertices, which gives the same bits: what the loop pays).
 """
 from __future__ import annotations
 
@@ -73,17 +75,19 @@ def case(model_name: str, size: int):
     return model, NormalMap(*render_target(shape, model.faces, camera)), camera
 
 
-def compare(revision: str, model_name: str, size: int, rounds: int) -> dict:
+def compare(revision: str, model_name: str, size: int, rounds: int, every: int = 1) -> dict:
     """Both objectives' ms per call (lists), whether their values and gradients are the same bits, and
     the modules the revision's objective and renderer came from."""
+    from statfit.objectives.normals import NormalMapObjective
     from statfit.render.job import PosedView
 
     torch.set_num_threads(1)
     model, normal_map, camera = case(model_name, size)
     view = PosedView.of(model, normal_map, camera, torch.device("cpu"), torch.float32, align="none")
+    options = {name: value for name, value in view.options.items() if name != "visibility_every"}
     with tempfile.TemporaryDirectory() as folder:
-        old = revision_objective(revision, Path(folder))(view.target, view.mask, view.camera, **view.options)
-    new = view.objective
+        old = revision_objective(revision, Path(folder))(view.target, view.mask, view.camera, **options)
+    new = NormalMapObjective(view.target, view.mask, view.camera, **options, visibility_every=every)
     x = view.start.clone().requires_grad_(True)
 
     def call(objective) -> tuple[dict, torch.Tensor]:
@@ -117,8 +121,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--size", type=int, default=512, help="image size in pixels (default 512)")
     parser.add_argument("--rounds", type=int, default=20, help="alternations of 10 calls each (default 20)")
     parser.add_argument("--model", choices=("ict", "embedded"), default="ict")
+    parser.add_argument("--every", type=int, default=1, help="this tree's calls per visibility refresh (default 1)")
     args = parser.parse_args(argv)
-    result = compare(args.against, args.model, args.size, args.rounds)
+    result = compare(args.against, args.model, args.size, args.rounds, args.every)
     medians = {}
     for name, values in result["times"].items():
         medians[name] = statistics.median(values)

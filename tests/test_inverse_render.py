@@ -266,3 +266,18 @@ def test_rodrigues_is_the_matrix_exponential_with_its_gradient(angle):
     gradient, = torch.autograd.grad((ours * weights).sum(), omega)
     expected, = torch.autograd.grad((reference * weights).sum(), omega)
     torch.testing.assert_close(gradient, expected, rtol=0, atol=1e-12)
+
+
+def test_the_visibility_is_reused_where_no_graph_captures_the_fit_and_never_for_the_paper(monkeypatch):
+    import statfit.render.visibility as visibility
+    from statfit.render.visibility import visibility_every
+
+    monkeypatch.setattr(visibility, "VISIBILITY_EVERY", 4)       # shipped: 1 (docs/studies.md §26)
+    VISIBILITY_EVERY = 4
+    cpu, cuda = torch.device("cpu"), torch.device("cuda")
+    assert visibility_every("tuned", cpu) == VISIBILITY_EVERY
+    assert visibility_every("paper", cpu) == 1
+    monkeypatch.delenv("STATFIT_CUDA_GRAPHS", raising=False)
+    assert visibility_every("tuned", cuda) == 1
+    monkeypatch.setenv("STATFIT_CUDA_GRAPHS", "0")
+    assert visibility_every("tuned", cuda) == VISIBILITY_EVERY

@@ -83,3 +83,80 @@ def test_the_products_over_corners_are_the_bits_of_the_whole_product_summed():
     assert torch.equal(_corner_sum(planes[:, :, None], terms[:, None], dim=0),
                        (planes[:, :, None] * terms[:, None]).sum(dim=0))
     assert torch.equal(_corner_sum(planes[:, :, None], w[None]), (planes[:, :, None] * w[None]).sum(dim=1))
+
+
+def _reused_loss(renderer, x, weights, refresh):
+    """A weighted sum of the view's blended normals and coverage over the image's pixels (not the dump
+    slots, which no term reads): smooth in ``x`` while the visibility is held."""
+    view = renderer(x, refresh=refresh)
+    weight_n, weight_c = weights
+    real = view.pixel < renderer.pixels
+    coverage = view.blended_coverage(torch.float64)[:renderer.pixels]
+    return (view.blended_normals() * weight_n[:, :len(real)] * real).sum() + (coverage * weight_c[:len(coverage)]).sum()
+
+
+def test_reused_visibility_at_the_same_vertices_is_the_refreshed_view_to_the_bit(scene):
+    """Visibility is a function of the vertices: reused at the vertices it was found at, the view and its
+    gradient are the refreshed call's, bit for bit."""
+    vertices, faces, camera = scene
+    renderer = SteadyRenderer(faces, camera, MeshAdjacency.from_faces(faces), torch.float64)
+    generator = torch.Generator().manual_seed(3)
+    weights = (torch.randn(3, 200_000, generator=generator, dtype=torch.float64),
+               torch.randn(200_000, generator=generator, dtype=torch.float64))
+    outcomes = []
+    for refresh in (True, False):
+        x = vertices.clone().requires_grad_()
+        loss = _reused_loss(renderer, x, weights, refresh)
+        loss.backward()
+        outcomes.append((loss.detach(), x.grad))
+    assert torch.equal(outcomes[0][0], outcomes[1][0]) and torch.equal(outcomes[0][1], outcomes[1][1])
+
+
+def test_reused_visibility_keeps_the_pixels_and_moves_the_normals_with_exact_gradients(scene):
+    """Moved vertices drawn with the last refresh's visibility: the same pixels and triangles as that
+    refresh, normals and crossings that follow the vertices, and a gradient that finite differences
+    of the reused view confirm (float64)."""
+    vertices, faces, camera = scene
+    renderer = SteadyRenderer(faces, camera, MeshAdjacency.from_faces(faces), torch.float64)
+    fresh = renderer(vertices)
+    generator = torch.Generator().manual_seed(4)
+    moved = vertices + 2e-3 * torch.randn(vertices.shape, generator=generator, dtype=torch.float64)
+    reused = renderer(moved, refresh=False)
+    assert torch.equal(reused.pixel, fresh.pixel) and torch.equal(reused.face, fresh.face)
+    assert not torch.allclose(reused.normals, fresh.normals, atol=1e-9)
+    real = reused.pixel < renderer.pixels
+    np.testing.assert_allclose(reused.normals[:, real].norm(dim=0).numpy(), 1.0, atol=1e-12)
+    weights = (torch.randn(3, 200_000, generator=generator, dtype=torch.float64),
+               torch.randn(200_000, generator=generator, dtype=torch.float64))
+    x = moved.clone().requires_grad_()
+    _reused_loss(renderer, x, weights, refresh=False).backward()
+    direction = torch.randn(vertices.shape, generator=generator, dtype=torch.float64)
+    step = 1e-8          # the crossings curve fast: at 1e-6 central differences are off by ~1e-4
+    with torch.no_grad():
+        ahead = _reused_loss(renderer, moved + step * direction, weights, refresh=False)
+        behind = _reused_loss(renderer, moved - step * direction, weights, refresh=False)
+    numeric = float((ahead - behind) / (2 * step))
+    analytic = float((x.grad * direction).sum())
+    assert abs(analytic) > 1.0
+    assert abs(numeric - analytic) < 1e-5 * abs(analytic)
+
+
+def test_the_objective_refreshes_every_k_calls_and_after_a_reset(scene):
+    from statfit.objectives.normals import NormalMapObjective
+    from statfit.renderer import render_normals
+
+    vertices, faces, camera = scene
+    normals, coverage = render_normals(vertices, faces, camera)
+    objective = NormalMapObjective(normals.detach(), coverage.detach() > 0.5, camera, faces, visibility_every=3)
+    assert not objective.capturable and NormalMapObjective(normals, coverage > 0.5, camera, faces).capturable
+    refreshes = []
+    objective(vertices)
+    original = objective._renderer._visibility
+    objective._renderer._visibility = lambda *args: refreshes.append(len(calls)) or original(*args)
+    calls = []
+    for _ in range(7):
+        calls.append(objective(vertices))
+    objective.reset()
+    calls.append(objective(vertices))
+    assert refreshes == [2, 5, 7]          # calls 3 and 6 since the first, then the first after the reset
+    assert all(torch.equal(each["normal"], calls[0]["normal"]) for each in calls)

@@ -35,10 +35,15 @@ WARMUP = 3          # eager iterations on a side stream before a capture (CUDA's
 Iteration = Callable[[], tuple[torch.Tensor, dict[str, torch.Tensor], torch.Tensor]]
 
 
+def graphs_capture(device: torch.device) -> bool:
+    """Whether fits on ``device`` are captured where they can be (CUDA, unless ``STATFIT_CUDA_GRAPHS=0``)."""
+    return device.type == "cuda" and os.environ.get("STATFIT_CUDA_GRAPHS", "1") != "0"
+
+
 def capturable(objective, optimizers: list[torch.optim.Optimizer], device: torch.device, parametrization=None) -> bool:
     """Whether a fit against ``objective`` with ``optimizers`` (and ``parametrization``'s map, when
     one is given) on ``device`` can run as a captured graph."""
-    return (device.type == "cuda" and os.environ.get("STATFIT_CUDA_GRAPHS", "1") != "0"
+    return (graphs_capture(device)
             and (parametrization is None or bool(getattr(parametrization, "capturable", False)))
             and bool(getattr(objective, "capturable", False)) and bool(getattr(objective, "deferred_checks", False))
             and getattr(objective, "optimizer", None) is None

@@ -13,7 +13,10 @@ antialiased at silhouette edges (its only gradients), ``m̂`` the target mask; o
 what the map shows, a face mask in a map of a head, whose outline is not the subject's); covering,
 ``Σ max(m̂ − m, 0)² / |target|``: only target the model leaves uncovered counts (for a map of part of
 the model, a face cut out of a photo fitted with a head).
-The total is ``normal + silhouette_weight · silhouette``. Visibility is recomputed every call.
+The total is ``normal + silhouette_weight · silhouette``. Visibility (which pixel shows which
+triangle, where the silhouette pairs lie) is recomputed every call, or every ``visibility_every``
+calls (``reset`` restarts the count): the calls in between draw the moved mesh at the pixels the
+last refresh found (docs/method.md, "Visibility reused").
 With a region (a mask over triangles), the normal term counts only the pixels that show a region
 triangle.
 """
@@ -45,17 +48,17 @@ class NormalMapObjective:
     """
 
     deferred_checks = True
-    capturable = True       # static shapes, no host reads: a CUDA graph can capture it (statfit.core.graphs)
 
     def __init__(self, normals: torch.Tensor, mask: torch.Tensor, camera: Camera | Sequence[Camera],
                  faces: torch.Tensor, silhouette_weight: float = SILHOUETTE_WEIGHT,
                  adjacency: MeshAdjacency | None = None, region_faces: torch.Tensor | None = None,
-                 one_sided: bool = False, covering: bool = False):
+                 one_sided: bool = False, covering: bool = False, visibility_every: int = 1):
         """normals: (H, W, 3) target unit normals in camera space, or (B, H, W, 3) for B views;
         mask: (H, W) or (B, H, W) bool target coverage; camera: one per view; faces: (F, 3) long on
         the normals' device; adjacency: ``MeshAdjacency.from_faces(faces)``, pass it to share it
         between objectives; region_faces: (F,) bool, the triangles whose pixels the normal term uses
-        (all when None); one_sided, covering: the one-sided silhouette terms."""
+        (all when None); one_sided, covering: the one-sided silhouette terms; visibility_every: calls
+        per refresh of the visibility (1: every call)."""
         self.views = len(normals) if normals.dim() == 4 else None
         views = self.views or 1
         normals, mask = normals.view(views, *normals.shape[-3:]), mask.view(views, *mask.shape[-2:])
@@ -87,12 +90,21 @@ class NormalMapObjective:
             self._view = torch.nn.functional.pad(self._view, (0, width + 3), value=views)
             self._silhouette_scale = (silhouette_weight / counts.double()).repeat_interleave(view_pixels)
         self._renderer: SteadyRenderer | None = None
+        self.visibility_every = visibility_every
+        self._calls = 0
+
+    @property
+    def capturable(self) -> bool:
+        """Whether a CUDA graph can capture a call (statfit.core.graphs): static shapes and no host
+        reads, and every call the same program (the visibility refreshed every call)."""
+        return self.visibility_every == 1
 
     def prepare(self, vertices: torch.Tensor, iteration: int) -> None:
         """Nothing to precompute: visibility is part of each call."""
 
     def reset(self) -> None:
-        """Nothing is kept between calls (the renderer's buffers are sizes, not state)."""
+        """The next call refreshes the visibility (a new stage starts from a fresh view)."""
+        self._calls = 0
 
     def replayed(self) -> bool:
         """After a replay of a captured call: whether the renderer's buffers were found too small
@@ -108,12 +120,13 @@ class NormalMapObjective:
     def per_fit(self, vertices: torch.Tensor) -> list[dict[str, float]]:
         """Each view's terms and their total at ``vertices`` (B, N, 3), as its own objective gives them."""
         with torch.no_grad():
-            terms = {name: each.tolist() for name, each in self._per_view(vertices).items()}
+            terms = {name: each.tolist() for name, each in self._per_view(vertices, refresh=True).items()}
         views = [{name: values[b] for name, values in terms.items()} for b in range(self.views)]
         return [{**view, "total": sum(view.values())} for view in views]
 
-    def _view_of(self, vertices: torch.Tensor):
-        """The renderer's view of ``vertices`` (made at the first call, for their dtype)."""
+    def _view_of(self, vertices: torch.Tensor, refresh: bool = False):
+        """The renderer's view of ``vertices`` (made at the first call, for their dtype), its
+        visibility refreshed where ``refresh`` or the count of calls says so."""
         if self._renderer is None or self._renderer.dtype != vertices.dtype:
             self._renderer = SteadyRenderer(self.faces, self.camera, self.adjacency, vertices.dtype,
                                             vertex_count=vertices.shape[-2])
@@ -121,7 +134,9 @@ class NormalMapObjective:
             self._region = self._region.to(vertices.dtype)
             if self.views is not None:
                 self._silhouette_scale = self._silhouette_scale.to(vertices.dtype)
-        return self._renderer(vertices)
+        refresh = refresh or self._calls % self.visibility_every == 0
+        self._calls += 1
+        return self._renderer(vertices, refresh)
 
     def _covered(self, view) -> tuple[torch.Tensor, torch.Tensor]:
         """The target's rows (4, M) at the view's covered pixels (before antialiasing), and whether
@@ -143,9 +158,9 @@ class NormalMapObjective:
                 * (self.silhouette_weight / self.count)
         return terms
 
-    def _per_view(self, vertices: torch.Tensor) -> dict[str, torch.Tensor]:
+    def _per_view(self, vertices: torch.Tensor, refresh: bool = False) -> dict[str, torch.Tensor]:
         """Each view's terms (B,) at ``vertices`` (B, N, 3)."""
-        view = self._view_of(vertices)
+        view = self._view_of(vertices, refresh)
         pixels, views = self._renderer.pixels, self.views
         target, both = self._covered(view)
         with torch.no_grad():

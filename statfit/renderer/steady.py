@@ -38,8 +38,8 @@ import torch
 
 from statfit.renderer.raster import _EMPTY, _row_span
 from statfit.renderer.silhouette import MeshAdjacency
-from statfit.renderer.steady_parts import (SteadyView, _columns, _CrossingWeights, _PixelNormals, _silhouette_flags,
-                                           _vertex_normals, mesh_copies, walk_to_silhouette)
+from statfit.renderer.steady_parts import (SteadyView, Visibility, _columns, _PixelNormals, _silhouette_flags,
+                                           _vertex_normals, crossing_blends, mesh_copies, walk_to_silhouette)
 from statfit.structures.camera import Camera
 
 MARGIN = 1.25       # buffer size / need at sizing
@@ -96,6 +96,7 @@ class SteadyRenderer:
         self._last_pixel = torch.tensor([[width - 1], [height - 1]], dtype=dtype, device=device)
         corners = faces.T.reshape(-1)
         self._corners = corners                                        # (3F,) corner-major
+        self._first_corners = corners[:count]
         self._gather = torch.cat([corners, adjacency.opposite.T.reshape(-1)])     # corners, then opposites
         padded = torch.cat([faces, faces.new_zeros(1, 3)])             # triangle F: none (vertex 0 thrice)
         self._padded_corners = padded.T.reshape(-1)                    # (3(F+1),) corner-major
@@ -125,6 +126,7 @@ class SteadyRenderer:
         self._aranges: dict = {}
         self._need: torch.Tensor | None = None
         self._calls = 0
+        self._visible: Visibility | None = None
 
     # --- buffers ----------------------------------------------------------------------------------------
 
@@ -168,40 +170,51 @@ class SteadyRenderer:
 
     # --- the view -----------------------------------------------------------------------------------------
 
-    def __call__(self, vertices: torch.Tensor) -> SteadyView:
-        count = self.count
+    def __call__(self, vertices: torch.Tensor, refresh: bool = True) -> SteadyView:
+        """The view of ``vertices`` (N, 3), or (B, N, 3). ``refresh`` False: with the visibility of
+        the last refreshed call (which pixel shows which triangle, the silhouette pairs and the
+        edges they cross, :class:`Visibility`): the normals and the crossings move with the
+        vertices, the pixels they are drawn at do not (the fitting loop's reuse, docs/method.md)."""
         camera_points, depth, screen = self._project(vertices)
         normals = _vertex_normals(camera_points, self._corners)                          # (3, N)
-        with torch.no_grad():
-            table = torch.cat([screen, depth], dim=1).T                                  # (3, N)
-            gathered = table.index_select(1, self._gather).view(3, 2, 3, count)
-            corner, opposite = gathered[:, 0], gathered[:2, 1]                          # (3, 3, F), (2, 3, F)
-            corner_j, corner_k = corner.roll(-1, 1), corner.roll(-2, 1)
-            keys, area2, raster_need = self._zbuffer(corner)
-            flags = _silhouette_flags(corner_j, corner_k, opposite, area2)               # (2, 3, F)
-            # Per triangle edge: the neighbour across it × 4 + 2 · (silhouette, steep) + (silhouette, flat).
-            facts = torch.nn.functional.pad(flags[0].int().mul_(2).add_(flags[1].int()), (0, 1))
-            walk = (torch.nn.functional.pad(corner[:2].reshape(6, count), (0, 1)),      # corner x, y rows
-                    facts.add_(self._neighbor_t, alpha=4))                               # (3, F+1) int32
-            # The key's low word: the triangle, or all ones (the background) → F.
-            triangle = keys.bitwise_and(_LOW32).clamp_max_(count)
-            covered = triangle < count
-            # Covered pixels, ascending, into a buffer of M slots (dump slots: the dump pixel).
-            pixel, running, slot = self._select(covered, "pixels", slot_map=True)      # lanes: pixels; pixel → slot
-            pixel.clamp_max_(self.pixels)
-            face = triangle.index_select(0, pixel)
-            sign = torch.cat([area2.sign(), area2.new_ones(1)]).index_select(0, face)
-            pairs, pair_need = self._pairs(keys, pixel, face, flags, walk)
-            self._check(torch.cat([raster_need, running[-1:], pair_need]))
+        if refresh or self._visible is None:
+            with torch.no_grad():
+                self._visible = self._visibility(screen, depth)
+        seen = self._visible
         data = torch.cat([screen.T, depth.T, normals])                                  # (6, N)
         with torch.no_grad():
-            first = torch.nn.functional.pad(corner[:2, 0], (0, 1)).index_select(1, face)  # (2, M)
-            offset = self._centre.index_select(1, pixel) - first
-        pixel_normals = _PixelNormals.apply(data, face, self._padded_corners, offset, sign)
-        target, source, weight = self._crossings(screen, pairs)
+            first = torch.nn.functional.pad(screen.T.index_select(1, self._first_corners), (0, 1))
+            offset = self._centre.index_select(1, seen.pixel) - first.index_select(1, seen.face)
+        pixel_normals = _PixelNormals.apply(data, seen.face, self._padded_corners, offset, seen.sign)
+        target, source, weight = crossing_blends(screen, seen.pairs, self._edge_ends, self.pixels)
         with torch.no_grad():
-            slot = slot.index_select(0, torch.cat([target, source])).view(2, -1)         # dump: M
-        return SteadyView(pixel, face, covered, pixel_normals, target, source, weight, slot)
+            slot = seen.slot.index_select(0, torch.cat([target, source])).view(2, -1)    # dump: M
+        return SteadyView(seen.pixel, seen.face, seen.covered, pixel_normals, target, source, weight, slot)
+
+    def _visibility(self, screen: torch.Tensor, depth: torch.Tensor) -> Visibility:
+        """The z-buffer's covered pixels and the silhouette pairs at ``screen`` (V, 2), ``depth`` (V, 1)."""
+        count = self.count
+        table = torch.cat([screen, depth], dim=1).T                                      # (3, N)
+        gathered = table.index_select(1, self._gather).view(3, 2, 3, count)
+        corner, opposite = gathered[:, 0], gathered[:2, 1]                              # (3, 3, F), (2, 3, F)
+        corner_j, corner_k = corner.roll(-1, 1), corner.roll(-2, 1)
+        keys, area2, raster_need = self._zbuffer(corner)
+        flags = _silhouette_flags(corner_j, corner_k, opposite, area2)                   # (2, 3, F)
+        # Per triangle edge: the neighbour across it × 4 + 2 · (silhouette, steep) + (silhouette, flat).
+        facts = torch.nn.functional.pad(flags[0].int().mul_(2).add_(flags[1].int()), (0, 1))
+        walk = (torch.nn.functional.pad(corner[:2].reshape(6, count), (0, 1)),          # corner x, y rows
+                facts.add_(self._neighbor_t, alpha=4))                                   # (3, F+1) int32
+        # The key's low word: the triangle, or all ones (the background) → F.
+        triangle = keys.bitwise_and(_LOW32).clamp_max_(count)
+        covered = triangle < count
+        # Covered pixels, ascending, into a buffer of M slots (dump slots: the dump pixel).
+        pixel, running, slot = self._select(covered, "pixels", slot_map=True)          # lanes: pixels; pixel → slot
+        pixel.clamp_max_(self.pixels)
+        face = triangle.index_select(0, pixel)
+        sign = torch.cat([area2.sign(), area2.new_ones(1)]).index_select(0, face)
+        pairs, pair_need = self._pairs(keys, pixel, face, flags, walk)
+        self._check(torch.cat([raster_need, running[-1:], pair_need]))
+        return Visibility(pixel, face, covered, sign, pairs, slot)
 
     def _project(self, vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Camera-space points (V, 3), their depths (V, 1) and pixel positions (V, 2) of ``vertices``
@@ -333,15 +346,3 @@ class SteadyRenderer:
         triangle, edge, hit = walk_to_silhouette(self._ring, count, start, centre, axis, direction, *walk)
         hit &= chosen < lanes
         return (inner, outer, axis, direction, centre, triangle, edge, hit), torch.stack([edges_need, running[-1]])
-
-    def _crossings(self, screen: torch.Tensor, pairs: tuple[torch.Tensor, ...]
-                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Blend targets, sources (K,) and differentiable weights; masked slots blend the dump pixel."""
-        inner, outer, axis, direction, centre, triangle, edge, hit = pairs
-        with torch.no_grad():
-            ends = self._edge_ends.index_select(0, triangle * 3 + edge)                 # (K, 2)
-        weight, near_inner = _CrossingWeights.apply(screen, ends.view(-1), centre.T, axis == 0, direction, hit)
-        with torch.no_grad():
-            target = torch.where(hit, torch.where(near_inner, inner, outer), self.pixels)
-            source = torch.where(near_inner, outer, inner)
-        return target, source, weight

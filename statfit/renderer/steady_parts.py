@@ -5,6 +5,8 @@ integer tables by columns; the copies of a mesh that one renderer draws for many
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
 from statfit.renderer.silhouette import _EPS, MeshAdjacency
@@ -119,6 +121,21 @@ class _CrossingWeights(torch.autograd.Function):
         return grad_screen, None, None, None, None, None
 
 
+def crossing_blends(screen: torch.Tensor, pairs: tuple[torch.Tensor, ...], edge_ends: torch.Tensor, dump: int
+                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Blend targets, sources (K,) and differentiable weights of the silhouette ``pairs``
+    (:class:`Visibility`) at the vertices' pixel positions ``screen`` (V, 2); edge_ends: (3(F+1), 2)
+    the endpoints of edge e of triangle t at row 3t + e; masked slots blend the ``dump`` pixel."""
+    inner, outer, axis, direction, centre, triangle, edge, hit = pairs
+    with torch.no_grad():
+        ends = edge_ends.index_select(0, triangle * 3 + edge)                           # (K, 2)
+    weight, near_inner = _CrossingWeights.apply(screen, ends.view(-1), centre.T, axis == 0, direction, hit)
+    with torch.no_grad():
+        target = torch.where(hit, torch.where(near_inner, inner, outer), dump)
+        source = torch.where(near_inner, outer, inner)
+    return target, source, weight
+
+
 def _vertex_normals(points: torch.Tensor, corners: torch.Tensor) -> torch.Tensor:
     """Unit area-weighted vertex normals (3, N) of ``points`` (N, 3); corners: faces.T flattened."""
     a, b, c = points.T.index_select(1, corners).view(3, 3, -1).unbind(dim=1)
@@ -138,6 +155,22 @@ def _silhouette_flags(corner_j: torch.Tensor, corner_k: torch.Tensor, opposite: 
     extent = (corner_k[:2] - corner_j[:2]).abs_()
     steep = extent[1] >= extent[0]
     return torch.stack([silhouette & steep, silhouette & ~steep])
+
+
+@dataclass(frozen=True)
+class Visibility:
+    """What the z-buffer and the silhouette walk decided for one set of vertex positions (no
+    gradient): the covered pixels (M,) (``SteadyView.pixel``), their triangles (M,), the covered
+    mask (extent,), the triangles' area signs at the pixels (M,), the silhouette pairs (the tuple
+    of ``SteadyRenderer._pairs``, K slots) and each padded pixel's slot in ``pixel`` (extent,) (M: not
+    covered)."""
+
+    pixel: torch.Tensor
+    face: torch.Tensor
+    covered: torch.Tensor
+    sign: torch.Tensor
+    pairs: tuple[torch.Tensor, ...]
+    slot: torch.Tensor
 
 
 class SteadyView:
