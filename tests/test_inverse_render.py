@@ -273,11 +273,10 @@ def test_the_visibility_is_reused_where_no_graph_captures_the_fit_and_never_for_
     from statfit.render.visibility import visibility_every
 
     monkeypatch.setattr(visibility, "VISIBILITY_EVERY", 4)       # shipped: 1 (docs/studies.md §26)
-    VISIBILITY_EVERY = 4
     cpu, cuda = torch.device("cpu"), torch.device("cuda")
-    assert visibility_every("tuned", cpu) == VISIBILITY_EVERY
+    assert visibility_every("tuned", cpu) == 4
     assert visibility_every("paper", cpu) == 1
     monkeypatch.delenv("STATFIT_CUDA_GRAPHS", raising=False)
     assert visibility_every("tuned", cuda) == 1
     monkeypatch.setenv("STATFIT_CUDA_GRAPHS", "0")
-    assert visibility_every("tuned", cuda) == VISIBILITY_EVERY
+    assert visibility_every("tuned", cuda) == 4

@@ -100,7 +100,7 @@ class NormalMapObjective:
         return self.visibility_every == 1
 
     def prepare(self, vertices: torch.Tensor, iteration: int) -> None:
-        """Nothing to precompute: visibility is part of each call."""
+        """Nothing to precompute: visibility is part of the calls (refreshed on their own count)."""
 
     def reset(self) -> None:
         """The next call refreshes the visibility (a new stage starts from a fresh view)."""

@@ -333,6 +333,7 @@ def _align(start: torch.Tensor, objective: NormalMapObjective, space: FitSpace, 
     moved = fit_pose(start, objective, with_scale=with_scale, **common)
     if guess is not None:
         return moved.pose, moved.shape  # the silhouettes disagreed: the rough guess needs refining
+    objective.reset()       # a reused visibility would be where the first search ended, not at ``start``
     still = fit_pose(start, objective, move=False, **common)
     chosen = moved if moved.loss < (1.0 - POSE_GAIN) * still.loss else still
     return chosen.pose, chosen.shape

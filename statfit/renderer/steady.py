@@ -96,7 +96,6 @@ class SteadyRenderer:
         self._last_pixel = torch.tensor([[width - 1], [height - 1]], dtype=dtype, device=device)
         corners = faces.T.reshape(-1)
         self._corners = corners                                        # (3F,) corner-major
-        self._first_corners = corners[:count]
         self._gather = torch.cat([corners, adjacency.opposite.T.reshape(-1)])     # corners, then opposites
         padded = torch.cat([faces, faces.new_zeros(1, 3)])             # triangle F: none (vertex 0 thrice)
         self._padded_corners = padded.T.reshape(-1)                    # (3(F+1),) corner-major
@@ -183,8 +182,7 @@ class SteadyRenderer:
         seen = self._visible
         data = torch.cat([screen.T, depth.T, normals])                                  # (6, N)
         with torch.no_grad():
-            first = torch.nn.functional.pad(screen.T.index_select(1, self._first_corners), (0, 1))
-            offset = self._centre.index_select(1, seen.pixel) - first.index_select(1, seen.face)
+            offset = self._centre.index_select(1, seen.pixel) - screen.T.index_select(1, seen.first_vertex)
         pixel_normals = _PixelNormals.apply(data, seen.face, self._padded_corners, offset, seen.sign)
         target, source, weight = crossing_blends(screen, seen.pairs, self._edge_ends, self.pixels)
         with torch.no_grad():
@@ -212,9 +210,10 @@ class SteadyRenderer:
         pixel.clamp_max_(self.pixels)
         face = triangle.index_select(0, pixel)
         sign = torch.cat([area2.sign(), area2.new_ones(1)]).index_select(0, face)
+        first_vertex = self._padded_corners.index_select(0, face)      # corner 0 of each (F: vertex 0)
         pairs, pair_need = self._pairs(keys, pixel, face, flags, walk)
         self._check(torch.cat([raster_need, running[-1:], pair_need]))
-        return Visibility(pixel, face, covered, sign, pairs, slot)
+        return Visibility(pixel, face, covered, sign, first_vertex, pairs, slot)
 
     def _project(self, vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Camera-space points (V, 3), their depths (V, 1) and pixel positions (V, 2) of ``vertices``

@@ -161,14 +161,16 @@ def _silhouette_flags(corner_j: torch.Tensor, corner_k: torch.Tensor, opposite: 
 class Visibility:
     """What the z-buffer and the silhouette walk decided for one set of vertex positions (no
     gradient): the covered pixels (M,) (``SteadyView.pixel``), their triangles (M,), the covered
-    mask (extent,), the triangles' area signs at the pixels (M,), the silhouette pairs (the tuple
-    of ``SteadyRenderer._pairs``, K slots) and each padded pixel's slot in ``pixel`` (extent,) (M: not
-    covered)."""
+    mask (extent,), the triangles' area signs at the pixels (M,), the vertex at each pixel's
+    triangle's first corner (M,) (the dump slots' triangle F: vertex 0; its normals are zero
+    whatever their offset), the silhouette pairs (the tuple of ``SteadyRenderer._pairs``, K slots)
+    and each padded pixel's slot in ``pixel`` (extent,) (M: not covered)."""
 
     pixel: torch.Tensor
     face: torch.Tensor
     covered: torch.Tensor
     sign: torch.Tensor
+    first_vertex: torch.Tensor
     pairs: tuple[torch.Tensor, ...]
     slot: torch.Tensor
 
