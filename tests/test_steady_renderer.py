@@ -160,3 +160,14 @@ def test_the_objective_refreshes_every_k_calls_and_after_a_reset(scene):
     calls.append(objective(vertices))
     assert refreshes == [2, 5, 7]          # calls 3 and 6 since the first, then the first after the reset
     assert all(torch.equal(each["normal"], calls[0]["normal"]) for each in calls)
+
+
+@pytest.mark.parametrize("every", [0, -4, 2.0, True, None])
+def test_a_refresh_count_that_is_not_a_whole_number_of_calls_is_refused(scene, every):
+    from statfit.errors import StatfitError
+    from statfit.objectives.normals import NormalMapObjective
+
+    vertices, faces, camera = scene
+    normals, mask = torch.zeros(camera.height, camera.width, 3), torch.ones(camera.height, camera.width, dtype=torch.bool)
+    with pytest.raises(StatfitError, match="visibility_every must be a whole number"):
+        NormalMapObjective(normals, mask, camera, faces, visibility_every=every)

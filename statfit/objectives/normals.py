@@ -26,6 +26,7 @@ from typing import Sequence
 
 import torch
 
+from statfit.errors import StatfitError
 from statfit.renderer import Camera, MeshAdjacency
 from statfit.renderer.steady import SteadyRenderer
 
@@ -59,6 +60,8 @@ class NormalMapObjective:
         between objectives; region_faces: (F,) bool, the triangles whose pixels the normal term uses
         (all when None); one_sided, covering: the one-sided silhouette terms; visibility_every: calls
         per refresh of the visibility (1: every call)."""
+        if isinstance(visibility_every, bool) or not isinstance(visibility_every, int) or visibility_every < 1:
+            raise StatfitError(f"visibility_every must be a whole number of calls, 1 or more, got {visibility_every!r}")
         self.views = len(normals) if normals.dim() == 4 else None
         views = self.views or 1
         normals, mask = normals.view(views, *normals.shape[-3:]), mask.view(views, *mask.shape[-2:])
