@@ -5,8 +5,8 @@ import torch
 
 from statfit.core.graphs import graphs_capture
 
-# Fitting calls per refresh: every call. Every 4 made ICT's default fits at 512² 0.57-0.59x as long,
-# none over 1.2% worse, but two of the first six cross-family fits 8% and 22% worse (docs/studies.md
+# Fitting calls per refresh: every call. Every 4 made ICT's default fits at 512² 0.57-0.59x as long and
+# bodies 16% closer, but cross-family fits 1.9% worse on average and five of 18 by 7-43% (docs/studies.md
 # §26: measured, not shipped).
 VISIBILITY_EVERY = 1
 
