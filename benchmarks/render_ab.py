@@ -123,6 +123,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--model", choices=("ict", "embedded"), default="ict")
     parser.add_argument("--every", type=int, default=1, help="this tree's calls per visibility refresh (default 1)")
     args = parser.parse_args(argv)
+    if args.every < 1 or args.size < 16 or args.rounds < 1:
+        parser.error("--every and --rounds must be 1 or more, --size 16 or more")
     result = compare(args.against, args.model, args.size, args.rounds, args.every)
     medians = {}
     for name, values in result["times"].items():

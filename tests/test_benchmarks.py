@@ -71,3 +71,12 @@ def test_render_ab_times_a_revisions_objective_beside_this_trees():
     unchanged = subprocess.run(["git", "-C", str(root), "diff", "--quiet", "HEAD", "--", *render_ab.MODULES.values()])
     if unchanged.returncode == 0:
         assert result["same_bits"]
+
+
+@pytest.mark.parametrize("option", [["--every", "0"], ["--rounds", "0"], ["--size", "4"]])
+def test_render_ab_refuses_counts_that_measure_nothing(option, capsys):
+    import render_ab
+
+    with pytest.raises(SystemExit) as stopped:
+        render_ab.main(option)
+    assert stopped.value.code == 2 and "must be 1 or more" in capsys.readouterr().err
