@@ -9,7 +9,8 @@
 # On a machine without network (Python 3.12): WHEELS=DIR installs the wheels in DIR, made here by
 # benchmarks/cuda_wheels.sh, into a private folder first; ICT=DIR links the ICT-FaceKit files in DIR
 # where the tests and benchmarks look for them (../shared/data/ict-face). BENCH_S=0 skips gpu.py;
-# DEVICE=cpu runs the same on the CPU (a dry run of this script).
+# DEVICE=cpu runs the same on the CPU (a dry run of this script). PROFILE=1 also writes gpu.py's
+# profile of the maps' fits stepped together to OUT_DIR/profile.txt.
 set -uo pipefail
 out=${1:?usage: bash benchmarks/cuda_check.sh OUT_DIR}
 total=${TOTAL_S:-560}
@@ -49,7 +50,10 @@ timeout -s INT -k 30 "$(left $((total - bench)))" python3 -m pytest -q -n "$work
 echo "the rest: exit $? ($(tail -1 "$out/rest.log"))"
 grep -h "^FAILED\|^ERROR" "$out/first.log" "$out/rest.log" | head -30
 if [ "$bench" -gt 0 ]; then
-    timeout "$(left "$total")" python3 benchmarks/gpu.py --device "$device" --out "$out/gpu.json" > "$out/gpu.md" 2>&1
+    profile=()
+    [ -n "${PROFILE:-}" ] && profile=(--profile "$out/profile.txt")
+    timeout "$(left "$total")" python3 benchmarks/gpu.py --device "$device" --out "$out/gpu.json" "${profile[@]}" \
+        > "$out/gpu.md" 2>&1
     echo "gpu.py: exit $?"
     cat "$out/gpu.md"
 fi
