@@ -10,7 +10,8 @@
 # benchmarks/cuda_wheels.sh, into a private folder first; ICT=DIR links the ICT-FaceKit files in DIR
 # where the tests and benchmarks look for them (../shared/data/ict-face). BENCH_S=0 skips gpu.py;
 # DEVICE=cpu runs the same on the CPU (a dry run of this script). PROFILE=1 also writes gpu.py's
-# profile of the maps' fits stepped together to OUT_DIR/profile.txt.
+# profile of the maps' fits stepped together to OUT_DIR/profile.txt; GPU_ARGS passes gpu.py more
+# options (e.g. "--only render"); BENCH_FIRST=1 runs gpu.py first, for its first BENCH_S seconds.
 set -uo pipefail
 out=${1:?usage: bash benchmarks/cuda_check.sh OUT_DIR}
 total=${TOTAL_S:-560}
@@ -38,22 +39,35 @@ python3 -c "import statfit" 2>/dev/null ||
   python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)"; } | tee "$out/machine.txt"
 
 export STATFIT_DEVICE=$device PYTHONUNBUFFERED=1
-ignore=()
-for file in $first; do ignore+=(--ignore "$file"); done
-# shellcheck disable=SC2086
-timeout -s INT -k 30 "$(left $((total - bench)))" python3 -m pytest -q -n "$workers" -p no:cacheprovider $first \
-    --junitxml "$out/first.xml" > "$out/first.log" 2>&1
-echo "first files: exit $? ($(tail -1 "$out/first.log"))"
-timeout -s INT -k 30 "$(left $((total - bench)))" python3 -m pytest -q -n "$workers" -p no:cacheprovider \
-    tests "${ignore[@]}" \
-    --junitxml "$out/rest.xml" > "$out/rest.log" 2>&1
-echo "the rest: exit $? ($(tail -1 "$out/rest.log"))"
-grep -h "^FAILED\|^ERROR" "$out/first.log" "$out/rest.log" | head -30
-if [ "$bench" -gt 0 ]; then
-    profile=()
-    [ -n "${PROFILE:-}" ] && profile=(--profile "$out/profile.txt")
-    timeout "$(left "$total")" python3 benchmarks/gpu.py --device "$device" --out "$out/gpu.json" "${profile[@]}" \
+suite() {    # until $1 seconds into the run
+    local ignore=() file
+    for file in $first; do ignore+=(--ignore "$file"); done
+    # shellcheck disable=SC2086
+    timeout -s INT -k 30 "$(left "$1")" python3 -m pytest -q -n "$workers" -p no:cacheprovider $first \
+        --junitxml "$out/first.xml" > "$out/first.log" 2>&1
+    echo "first files: exit $? ($(tail -1 "$out/first.log"))"
+    timeout -s INT -k 30 "$(left "$1")" python3 -m pytest -q -n "$workers" -p no:cacheprovider \
+        tests "${ignore[@]}" \
+        --junitxml "$out/rest.xml" > "$out/rest.log" 2>&1
+    echo "the rest: exit $? ($(tail -1 "$out/rest.log"))"
+    grep -h "^FAILED\|^ERROR" "$out/first.log" "$out/rest.log" | head -30
+}
+benchmark() {    # until $1 seconds into the run
+    local extra=()
+    [ -n "${PROFILE:-}" ] && extra+=(--profile "$out/profile.txt")
+    # shellcheck disable=SC2206
+    extra+=(${GPU_ARGS:-})
+    timeout "$(left "$1")" python3 benchmarks/gpu.py --device "$device" --out "$out/gpu.json" "${extra[@]}" \
         > "$out/gpu.md" 2>&1
     echo "gpu.py: exit $?"
     cat "$out/gpu.md"
+}
+if [ "$bench" -le 0 ]; then
+    suite "$total"
+elif [ -n "${BENCH_FIRST:-}" ]; then
+    benchmark "$bench"
+    suite "$total"
+else
+    suite $((total - bench))
+    benchmark "$total"
 fi

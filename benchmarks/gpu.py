@@ -188,76 +188,12 @@ def report(rows: dict[str, object], out: Path | None) -> None:
     save(rows, out)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    parser.add_argument("--quick", action="store_true", help="small sizes: checks that it runs")
-    parser.add_argument("--out", type=Path, help="also write the numbers as JSON here")
-    parser.add_argument("--profile", type=Path, help="also profile the maps' fits stepped together, op by op, "
-                        "and write the ops by their device time here")
-    args = parser.parse_args()
-    device = args.device
-    if device == "cpu":
-        torch.set_num_threads(1)
-    from cases import normal_case, scan_case
-    from common import ICT_MODEL
+def register_together(ict, embedded, points, device: str, rows: dict, count: int) -> None:
+    """Rows of fits per second over ``count`` ICT scans, one after another and stepped together
+    (``register_many``), and ops and waits per iteration of 8 fits together."""
     import statfit
-    from statfit.model.statmodel import default_model_path, load_model
-    from statfit.synth.sample import camera_for_view, sample_target, scan_from_view
-    from statfit.structures.normal_map import NormalMap
-    from statfit.renderer.images import render_target
-    from statfit.core.fit import StageTimer
     from statfit.registration.many import register_many
-    from statfit.render.many import reconstruct_many
-
-    rows: dict[str, object] = {"device": torch.cuda.get_device_name() if device == "cuda" else "cpu (1 thread)",
-                               "torch": torch.__version__}
-    rows["filter step 2^20 (ms)"] = filter_step_ms(device, 1 << (14 if args.quick else 20))
-    ict = load_model(ICT_MODEL)
-    for solver in ("cholespy", "dense"):
-        rows[f"Laplacian solve, ICT's 11,248 vertices, {solver} (ms)"] = solve_ms(device, ict, solver)
-    save(rows, args.out)
-
-    embedded = load_model(default_model_path())
-    rng = np.random.default_rng(3)
-    target = sample_target(embedded, rng)
-    points = scan_from_view(target, embedded.faces, rng, 4300, 20.0)
-    camera = camera_for_view(target, 20.0, 0.0, 256)
-    normal_map = NormalMap(*render_target(target, embedded.faces, camera))
-    rows["register ops/it"], rows["register waits/it"] = per_iteration(
-        lambda it: statfit.register(embedded, points, "statistical", preset="paper", align="none", device=device,
-                                    iterations=it).iterations)
-    rows["render ops/it"], rows["render waits/it"] = per_iteration(
-        lambda it: statfit.reconstruct(embedded, normal_map, camera, "statistical", preset="paper", align="none",
-                                       device=device, iterations=it).iterations)
-    save(rows, args.out)
-
-    scan = scan_case("jaw-open")
-    rows["closest points, ICT, 4,300 scan points, k = 2 (ms)"] = closest_ms(device, ict, scan.points)
-    rows["register's fallback test, ICT, 4,300 scan points (ms)"] = fallback_test_ms(ict, scan.points)
-    normals = normal_case("jaw-open", 128 if args.quick else 512)
-    def register_with(method: str, preset: str, iterations: int | None, **overrides):
-        extra = {} if iterations is None else {"iterations": iterations}
-        return lambda timer: statfit.register(ict, scan.points, method, preset=preset, device=device, timer=timer,
-                                              **extra, **overrides)
-
-    def render_with(method: str, preset: str, iterations: int | None, **overrides):
-        extra = {} if iterations is None else {"iterations": iterations}
-        return lambda timer: statfit.reconstruct(ict, normals.normal_map, normals.camera, method, preset=preset,
-                                                 device=device, timer=timer, **extra, **overrides)
-
-    few, more = (10, 30) if args.quick else (50, 250)
-    # name: (job, method, preset, CUDA graphs on, whole fit timed, settings overridden)
-    # The shipped settings first, the comparisons last (a run stopped by its time limit keeps the former).
-    jobs = {"register default": (register_with, "default", "tuned", True, True, {}),
-            "register paper statistical": (register_with, "statistical", "paper", True, True, {}),
-            "render paper statistical": (render_with, "statistical", "paper", True, True, {}),
-            "render default": (render_with, "default", "tuned", True, True, {}),
-            "register default, cholespy": (register_with, "default", "tuned", True, True, {"solver": "cholespy"}),
-            "render paper statistical, op by op": (render_with, "statistical", "paper", False, False, {}),
-            "render default, cholespy, op by op": (render_with, "default", "tuned", True, True, {"solver": "cholespy"})}
-    timed(lambda: register_with("pca", "tuned", None)(None), device)      # warm-up: CUDA's start, the caches
-    count = 4 if args.quick else 8
+    from statfit.synth.sample import sample_target, scan_from_view
     scans = []
     for seed in range(count):
         person_rng = np.random.default_rng(100 + seed)
@@ -277,8 +213,16 @@ def main() -> None:
     rows["register together, 8 fits: ops/it"], rows["register together, 8 fits: waits/it"] = per_iteration(
         lambda it: register_many(embedded, [points] * 8, "statistical", preset="paper", align="none", device=device,
                                  iterations=it)[0].fit.iterations)
-    save(rows, args.out)
 
+
+def render_together(ict, embedded, normal_map, camera, device: str, rows: dict, args: argparse.Namespace) -> None:
+    """Rows of fits per second over ICT normal maps, one after another and stepped together
+    (``reconstruct_many``), their profile (``--profile``), and ops and waits per iteration of 8."""
+    import statfit
+    from statfit.render.many import reconstruct_many
+    from statfit.renderer.images import render_target
+    from statfit.structures.normal_map import NormalMap
+    from statfit.synth.sample import camera_for_view, sample_target
     # Many maps: the steady loop's throughput (paper statistical, RENDER_TOGETHER_ITERATIONS, no alignment).
     size, alone_count, together_count = (128, 2, 4) if args.quick else (512, 4, 16)
     maps, cameras = [], []
@@ -306,9 +250,85 @@ def main() -> None:
     rows["render together, 8 fits: ops/it"], rows["render together, 8 fits: waits/it"] = per_iteration(
         lambda it: reconstruct_many(embedded, [normal_map] * 8, [camera] * 8, "statistical",
                                     preset="paper", align="none", device=device, iterations=it)[0].fit.iterations)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--quick", action="store_true", help="small sizes: checks that it runs")
+    parser.add_argument("--out", type=Path, help="also write the numbers as JSON here")
+    parser.add_argument("--profile", type=Path, help="also profile the maps' fits stepped together, op by op, "
+                        "and write the ops by their device time here")
+    parser.add_argument("--only", choices=("register", "render"), help="one job's rows (and the filter's): a "
+                        "shorter card run")
+    args = parser.parse_args()
+    wanted = {"register", "render"} if args.only is None else {args.only}
+    device = args.device
+    if device == "cpu":
+        torch.set_num_threads(1)
+    from cases import normal_case, scan_case
+    from common import ICT_MODEL
+    import statfit
+    from statfit.model.statmodel import default_model_path, load_model
+    from statfit.synth.sample import camera_for_view, sample_target, scan_from_view
+    from statfit.structures.normal_map import NormalMap
+    from statfit.renderer.images import render_target
+    from statfit.core.fit import StageTimer
+
+    rows: dict[str, object] = {"device": torch.cuda.get_device_name() if device == "cuda" else "cpu (1 thread)",
+                               "torch": torch.__version__}
+    rows["filter step 2^20 (ms)"] = filter_step_ms(device, 1 << (14 if args.quick else 20))
+    ict = load_model(ICT_MODEL)
+    for solver in ("cholespy", "dense"):
+        rows[f"Laplacian solve, ICT's 11,248 vertices, {solver} (ms)"] = solve_ms(device, ict, solver)
     save(rows, args.out)
 
-    for name, (make, method, preset, graphs_on, whole, overrides) in jobs.items():
+    embedded = load_model(default_model_path())
+    rng = np.random.default_rng(3)
+    target = sample_target(embedded, rng)
+    points = scan_from_view(target, embedded.faces, rng, 4300, 20.0)
+    camera = camera_for_view(target, 20.0, 0.0, 256)
+    normal_map = NormalMap(*render_target(target, embedded.faces, camera))
+    if "register" in wanted:
+        rows["register ops/it"], rows["register waits/it"] = per_iteration(
+            lambda it: statfit.register(embedded, points, "statistical", preset="paper", align="none", device=device,
+                                        iterations=it).iterations)
+    if "render" in wanted:
+        rows["render ops/it"], rows["render waits/it"] = per_iteration(
+            lambda it: statfit.reconstruct(embedded, normal_map, camera, "statistical", preset="paper", align="none",
+                                           device=device, iterations=it).iterations)
+    save(rows, args.out)
+
+    scan = scan_case("jaw-open")
+    if "register" in wanted:
+        rows["closest points, ICT, 4,300 scan points, k = 2 (ms)"] = closest_ms(device, ict, scan.points)
+        rows["register's fallback test, ICT, 4,300 scan points (ms)"] = fallback_test_ms(ict, scan.points)
+    normals = normal_case("jaw-open", 128 if args.quick else 512)
+    def register_with(method: str, preset: str, iterations: int | None, **overrides):
+        extra = {} if iterations is None else {"iterations": iterations}
+        return lambda timer: statfit.register(ict, scan.points, method, preset=preset, device=device, timer=timer,
+                                              **extra, **overrides)
+
+    def render_with(method: str, preset: str, iterations: int | None, **overrides):
+        extra = {} if iterations is None else {"iterations": iterations}
+        return lambda timer: statfit.reconstruct(ict, normals.normal_map, normals.camera, method, preset=preset,
+                                                 device=device, timer=timer, **extra, **overrides)
+
+    few, more = (10, 30) if args.quick else (50, 250)
+    # name: (job, method, preset, CUDA graphs on, whole fit timed, settings overridden)
+    # The shipped settings first, then the fits together, the comparisons last (a run stopped by its
+    # time limit keeps the former).
+    jobs = {"register default": (register_with, "default", "tuned", True, True, {}),
+            "register paper statistical": (register_with, "statistical", "paper", True, True, {}),
+            "render paper statistical": (render_with, "statistical", "paper", True, True, {}),
+            "render default": (render_with, "default", "tuned", True, True, {}),
+            "register default, cholespy": (register_with, "default", "tuned", True, True, {"solver": "cholespy"}),
+            "render paper statistical, op by op": (render_with, "statistical", "paper", False, False, {}),
+            "render default, cholespy, op by op": (render_with, "default", "tuned", True, True, {"solver": "cholespy"})}
+    shipped = 4
+
+    def time_job(name: str) -> None:
+        make, method, preset, graphs_on, whole, overrides = jobs[name]
         timer = StageTimer()
         fit = make(method, preset, None, **overrides)
         with cuda_graphs(graphs_on):
@@ -326,6 +346,20 @@ def main() -> None:
               file=sys.stderr, flush=True)
         save(rows, args.out)
 
+    names = [name for name in jobs if name.split()[0] in wanted]
+    timed(lambda: register_with("pca", "tuned", None)(None), device)      # warm-up: CUDA's start, the caches
+    for name in names:
+        if list(jobs).index(name) < shipped:
+            time_job(name)
+    if "register" in wanted:
+        register_together(ict, embedded, points, device, rows, 4 if args.quick else 8)
+        save(rows, args.out)
+    if "render" in wanted:
+        render_together(ict, embedded, normal_map, camera, device, rows, args)
+        save(rows, args.out)
+    for name in names:
+        if list(jobs).index(name) >= shipped:
+            time_job(name)
     report(rows, args.out)
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from torch.utils._python_dispatch import TorchDispatchMode
 
 from statfit.renderer import MeshAdjacency, render_normals
 from statfit.renderer.steady import SteadyRenderer
@@ -171,3 +172,69 @@ def test_a_refresh_count_that_is_not_a_whole_number_of_calls_is_refused(scene, e
     normals, mask = torch.zeros(camera.height, camera.width, 3), torch.ones(camera.height, camera.width, dtype=torch.bool)
     with pytest.raises(StatfitError, match="visibility_every must be a whole number"):
         NormalMapObjective(normals, mask, camera, faces, visibility_every=every)
+
+
+def test_the_gpu_lookups_give_the_cpu_view_and_gradient_to_the_bit(scene):
+    """``lookups`` (a GPU's: slots looked up by ``searchsorted`` instead of scattered) on a CPU: the
+    same pixels, triangles, blends, loss and gradient as the scatters, bit for bit."""
+    vertices, faces, camera = scene
+    generator = torch.Generator().manual_seed(5)
+    weights = (torch.randn(3, 200_000, generator=generator, dtype=torch.float64),
+               torch.randn(200_000, generator=generator, dtype=torch.float64))
+    outcomes = []
+    for lookups in (False, True):
+        renderer = SteadyRenderer(faces, camera, MeshAdjacency.from_faces(faces), torch.float64)
+        renderer.lookups = lookups
+        x = vertices.clone().requires_grad_()
+        view = renderer(x)
+        loss = _reused_loss(renderer, x, weights, refresh=False)
+        loss.backward()
+        outcomes.append((view.pixel, view.face, view.target, view.source, view.weight.detach(), loss.detach(), x.grad))
+    assert all(torch.equal(a, b) for a, b in zip(*outcomes))
+
+
+class _Scatters(TorchDispatchMode):
+    """The most writes any one index takes in each accumulating scatter (index_add, scatter_add,
+    scatter_reduce, index_put with accumulate), by op."""
+
+    def __init__(self):
+        super().__init__()
+        self.most: list[tuple[str, int]] = []
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        name = func.__name__.split(".")[0]
+        index = None
+        if name in ("index_add", "index_add_", "scatter_add", "scatter_add_", "scatter_reduce", "scatter_reduce_"):
+            index = args[2]
+        elif name in ("index_put", "index_put_", "_index_put_impl_") and (args[3] if len(args) > 3 else False):
+            index = next(i for i in args[1] if i is not None)
+        if index is not None and index.numel():
+            self.most.append((name, int(torch.unique(index.reshape(-1), return_counts=True)[1].max())))
+        return func(*args, **(kwargs or {}))
+
+
+def test_no_index_takes_the_masked_lanes_writes(embedded_model):
+    """CUDA's deterministic scatters add each index's writes one after another, so one index that
+    every masked lane writes costs milliseconds a call on a card (the H100 profile, 2026-11-27). A
+    render iteration's scatters (the objective and its backward, GPU lookups, 256²) take at most a
+    few dozen writes at one index (17, 2026-11-27); with one dump slot they took thousands (6,747)."""
+    shape = embedded_model.sample(np.random.default_rng(11), 1.0)
+    camera = camera_for_view(shape, 20.0, 5.0, 256)
+    faces = torch.as_tensor(embedded_model.faces, dtype=torch.long)
+    renderer = SteadyRenderer(faces, camera, MeshAdjacency.from_faces(faces), torch.float32)
+    renderer.lookups = True
+    vertices = torch.as_tensor(shape, dtype=torch.float32)
+    generator = torch.Generator().manual_seed(6)
+    weights = (torch.randn(3, 200_000, generator=generator), torch.randn(200_000, generator=generator))
+    renderer(vertices)                                       # the buffers sized (host reads)
+    spy = _Scatters()
+    x = vertices.clone().requires_grad_()
+    with spy:
+        view = renderer(x)
+        real = view.pixel < renderer.pixels
+        coverage = view.blended_coverage(torch.float32)[:renderer.pixels]
+        loss = (view.blended_normals() * weights[0][:, :len(real)] * real).sum() + (coverage * weights[1][:len(coverage)]).sum()
+        loss.backward()
+    covered = int(real.sum())
+    assert len(spy.most) >= 6
+    assert max(most for _, most in spy.most) < covered / 100, (covered, spy.most)

@@ -31,6 +31,7 @@ from statfit.renderer import Camera, MeshAdjacency
 from statfit.renderer.steady import SteadyRenderer
 
 SILHOUETTE_WEIGHT = 1.0
+SPREAD = 1024       # partial sums per view on a GPU (per_view_sums)
 
 
 class NormalMapObjective:
@@ -169,7 +170,7 @@ class NormalMapObjective:
         with torch.no_grad():
             owner = self._view.index_select(0, view.pixel)                             # (M,) B: the dump
         error = (view.blended_normals() - target[:3]).abs().sum(dim=0) * both
-        sums = error.new_zeros(2, views + 1).index_add(1, owner, torch.stack([error, both]))
+        sums = per_view_sums(torch.stack([error, both]), owner, views + 1)
         terms = {"normal": sums[0, :views] / sums[1, :views].clamp_min(1.0)}
         if self.silhouette_weight:
             coverage = view.blended_coverage(vertices.dtype)[:pixels]
@@ -184,3 +185,17 @@ class NormalMapObjective:
         if self.covering:
             return difference.clamp_max(0.0)
         return difference
+
+
+def per_view_sums(values: torch.Tensor, owner: torch.Tensor, owners: int, spread: int | None = None
+                  ) -> torch.Tensor:
+    """Σ values[:, i] over the lanes i of each owner: (C, owners), from values (C, L) and owner
+    (L,), through ``spread`` partial sums per owner (default: ``SPREAD`` on a GPU, where CUDA's
+    deterministic ``index_add`` adds each index's writes one after another, tens of thousands a
+    view here; 1 on a CPU, which sums in lane order)."""
+    spread = spread or (1 if owner.device.type == "cpu" else SPREAD)
+    if spread == 1:
+        return values.new_zeros(len(values), owners).index_add(1, owner, values)
+    lane = owner * spread + torch.arange(len(owner), device=owner.device) % spread
+    partial = values.new_zeros(len(values), owners * spread).index_add(1, lane, values)
+    return partial.view(len(values), owners, spread).sum(dim=2)

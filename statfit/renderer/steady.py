@@ -21,7 +21,9 @@ out for a loop that calls it every iteration, on a GPU as on a CPU:
   normals and the crossing weights have hand-written backward passes.
 
 Images are flat over the pixels of the image padded by one pixel on every side (so neighbours never
-need a bounds test), then one dump slot that masked lanes write into (and its neighbours).
+need a bounds test), then one dump slot that masked lanes point at (and its neighbours). Masked
+lanes that scatter write nothing (a zero, or no key) into distinct real slots instead: CUDA's
+deterministic scatters add each slot's writes one after another.
 
 The z-buffer and the pairs are those of the general functions (the same row spans and depth keys:
 the same triangle per pixel); the normals are the edge functions' sum, set up per triangle as an
@@ -38,8 +40,9 @@ import torch
 
 from statfit.renderer.raster import _EMPTY, _row_span
 from statfit.renderer.silhouette import MeshAdjacency
-from statfit.renderer.steady_parts import (SteadyView, Visibility, _columns, _PixelNormals, _silhouette_flags,
-                                           _vertex_normals, crossing_blends, mesh_copies, walk_to_silhouette)
+from statfit.renderer.steady_parts import (UNCOVERED_COLUMNS, SteadyView, Visibility, _columns, _PixelNormals,
+                                           _silhouette_flags, _vertex_normals, crossing_blends, mesh_copies,
+                                           walk_to_silhouette)
 from statfit.structures.camera import Camera
 
 MARGIN = 1.25       # buffer size / need at sizing
@@ -74,6 +77,11 @@ class SteadyRenderer:
             faces, adjacency = mesh_copies(faces, adjacency, views, vertex_count)
         device = faces.device
         self.device, self.dtype, self.near, self.views = device, dtype, near, views
+        # CUDA's deterministic scatters (index_add, index_put with accumulate) sort their indices and
+        # add each index's writes one after another: a slot that thousands of masked lanes write
+        # takes milliseconds. On a GPU the enumerations look slots up (searchsorted) instead of
+        # scattering, and masked lanes that must scatter write zeros to distinct real slots.
+        self.lookups = device.type != "cpu"
         self.height, self.width = height, width
         self.stride = stride = width + 2
         self.view_pixels = view_pixels = (height + 2) * stride          # one padded image
@@ -145,6 +153,12 @@ class SteadyRenderer:
             self._aranges[size] = torch.arange(size, dtype=torch.long, device=self.device)
         return self._aranges[size]
 
+    def _spread(self, size: int, modulus: int) -> torch.Tensor:
+        """0, 1, … modulo ``modulus`` (size,): distinct slots for masked lanes to write nothing into."""
+        if ("spread", size, modulus) not in self._aranges:
+            self._aranges["spread", size, modulus] = self._arange(size) % modulus
+        return self._aranges["spread", size, modulus]
+
     def _check(self, need: torch.Tensor) -> None:
         """Keep the largest need (on the device, in place) and count the call (:meth:`replayed`),
         unless a CUDA graph is capturing it: then whoever replays it counts."""
@@ -183,10 +197,10 @@ class SteadyRenderer:
         data = torch.cat([screen.T, depth.T, normals])                                  # (6, N)
         with torch.no_grad():
             offset = self._centre.index_select(1, seen.pixel) - screen.T.index_select(1, seen.first_vertex)
-        pixel_normals = _PixelNormals.apply(data, seen.face, self._padded_corners, offset, seen.sign)
-        target, source, weight = crossing_blends(screen, seen.pairs, self._edge_ends, self.pixels)
+        pixel_normals = _PixelNormals.apply(data, seen.face, self._padded_corners, offset, seen.sign, seen.spread_face)
+        target, source, weight = crossing_blends(screen, seen.pairs, self._edge_ends)
         with torch.no_grad():
-            slot = seen.slot.index_select(0, torch.cat([target, source])).view(2, -1)    # dump: M
+            slot = seen.slot.index_select(0, torch.cat([target, source])).view(2, -1)    # not covered: ≥ M
         return SteadyView(seen.pixel, seen.face, seen.covered, pixel_normals, target, source, weight, slot)
 
     def _visibility(self, screen: torch.Tensor, depth: torch.Tensor) -> Visibility:
@@ -207,13 +221,16 @@ class SteadyRenderer:
         covered = triangle < count
         # Covered pixels, ascending, into a buffer of M slots (dump slots: the dump pixel).
         pixel, running, slot = self._select(covered, "pixels", slot_map=True)          # lanes: pixels; pixel → slot
+        # A blend into an uncovered pixel writes a column past the covered slots, spread over a few.
+        slot = torch.where(covered, slot, slot + self._spread(len(slot), UNCOVERED_COLUMNS))
         pixel.clamp_max_(self.pixels)
         face = triangle.index_select(0, pixel)
         sign = torch.cat([area2.sign(), area2.new_ones(1)]).index_select(0, face)
         first_vertex = self._padded_corners.index_select(0, face)      # corner 0 of each (F: vertex 0)
+        spread_face = torch.where(face < count, face, self._spread(len(face), count))
         pairs, pair_need = self._pairs(keys, pixel, face, flags, walk)
         self._check(torch.cat([raster_need, running[-1:], pair_need]))
-        return Visibility(pixel, face, covered, sign, first_vertex, pairs, slot)
+        return Visibility(pixel, face, covered, sign, first_vertex, pairs, slot, spread_face)
 
     def _project(self, vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Camera-space points (V, 3), their depths (V, 1) and pixel positions (V, 2) of ``vertices``
@@ -237,9 +254,8 @@ class SteadyRenderer:
         scatter is the faster."""
         running = torch.cumsum(flags, 0)
         slots = self._size(name, running[-1])
-        on_cpu = self.device.type == "cpu"
-        slot = torch.where(flags, running - 1, slots).clamp_max_(slots) if slot_map or on_cpu else None
-        if not on_cpu:
+        slot = torch.where(flags, running - 1, slots).clamp_max_(slots) if slot_map or not self.lookups else None
+        if self.lookups:
             if ("from 1", slots) not in self._aranges:
                 self._aranges["from 1", slots] = torch.arange(1, slots + 1, dtype=torch.long, device=self.device)
             return torch.searchsorted(running, self._aranges["from 1", slots]), running, slot
@@ -248,14 +264,19 @@ class SteadyRenderer:
 
     def _owners(self, counts: torch.Tensor, name: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Enumerate (owner, index) pairs, 0 ≤ index < counts[owner], into a buffer of slots: owner
-        (slots,) (len(counts): past the end) and index (slots,); and the need (0-d). ``searchsorted``
-        without its binary search: the owners whose first pair lies at or before a slot, less one."""
+        (slots,) (len(counts): past the end) and index (slots,); and the need (0-d). The owner of a
+        slot is the number of owners that end at or before it: on a GPU ``searchsorted``; on a CPU
+        without its binary search, the owners whose first pair lies at or before the slot, less one
+        (a scatter of start marks: on a GPU the owners without pairs would all mark one slot)."""
         ends = torch.cumsum(counts, 0)
         slots = self._size(name, ends[-1])
         starts = ends - counts
-        marks = torch.zeros(slots + 1, dtype=torch.long, device=self.device)
-        owner = marks.index_add_(0, starts.clamp_max(slots), self._ones(len(counts))).cumsum_(0)[:slots] - 1
-        owner = torch.where(self._arange(slots) < ends[-1], owner, len(counts))
+        if self.lookups:
+            owner = torch.searchsorted(ends, self._arange(slots), right=True)
+        else:
+            marks = torch.zeros(slots + 1, dtype=torch.long, device=self.device)
+            owner = marks.index_add_(0, starts.clamp_max(slots), self._ones(len(counts))).cumsum_(0)[:slots] - 1
+            owner = torch.where(self._arange(slots) < ends[-1], owner, len(counts))
         padded = torch.nn.functional.pad(starts, (0, 1), value=0)
         return owner, self._arange(slots) - padded.index_select(0, owner), ends[-1]
 
@@ -299,8 +320,9 @@ class SteadyRenderer:
         key = depth_bits.view(torch.int32).long().bitwise_left_shift_(32).bitwise_or_(triangle)
         inside = row < len(owner)
         keys = torch.full((self.extent,), _EMPTY, dtype=torch.int64, device=self.device)
-        keys.scatter_reduce_(0, torch.where(inside, base + dx, self.pixels), torch.where(inside, key, _EMPTY),
-                             reduce="amin")
+        # Lanes past the need offer no key (_EMPTY), each to its own pixel.
+        keys.scatter_reduce_(0, torch.where(inside, base + dx, self._spread(len(row), self.extent)),
+                             torch.where(inside, key, _EMPTY), reduce="amin")
         return keys, area2, torch.stack([rows_need, pixels_need])
 
     def _pairs(self, keys: torch.Tensor, pixel: torch.Tensor, face: torch.Tensor, flags: torch.Tensor,
@@ -335,7 +357,10 @@ class SteadyRenderer:
         chosen, running, _ = self._select(found.view(-1), "pairs")                     # 4M: masked
         lanes = 4 * slots_m
         direction_id = chosen.div(slots_m, rounding_mode="floor")                      # 4: masked
-        m = chosen - direction_id * slots_m
+        used = chosen < lanes
+        # A masked slot pairs a pixel with itself (direction 4: no offset), each its own pixel.
+        spare = self._arange(len(chosen)) % edges_need.clamp_min(1)
+        m = torch.where(used, chosen - direction_id * slots_m, spare)
         inner = pixel.index_select(0, m)
         outer = inner + self._offset.index_select(0, direction_id)
         axis = self._axis.index_select(0, direction_id)
@@ -343,5 +368,6 @@ class SteadyRenderer:
         start = face.index_select(0, m)
         centre = self._centre.index_select(1, inner)                                    # (2, K)
         triangle, edge, hit = walk_to_silhouette(self._ring, count, start, centre, axis, direction, *walk)
-        hit &= chosen < lanes
+        hit &= used
+        triangle = torch.where(hit, triangle, self._spread(len(hit), count))     # no crossing: any, each its own
         return (inner, outer, axis, direction, centre, triangle, edge, hit), torch.stack([edges_need, running[-1]])

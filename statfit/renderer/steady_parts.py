@@ -11,6 +11,8 @@ import torch
 
 from statfit.renderer.silhouette import _EPS, MeshAdjacency
 
+UNCOVERED_COLUMNS = 64      # the columns that blends into uncovered pixels write (and are dropped)
+
 
 class _PixelNormals(torch.autograd.Function):
     """Perspective-correct unit normals (3, M) at pixel centres: Σ_k e_k n_k / z_k, normalised,
@@ -24,11 +26,12 @@ class _PixelNormals(torch.autograd.Function):
     data: (6, N) screen x, y, depth, normal x, y, z per vertex; face: (M,) the pixels' triangles
     into the triangles (F+1) whose corner-major vertex indices are ``corners`` (3(F+1),) (the last
     triangle: none; it gets no gradient); offset: (2, M) each pixel centre less its triangle's
-    first corner (no gradient). Hand-written backward: the pixels' gradients summed per triangle
-    (9 numbers), then per vertex."""
+    first corner (no gradient); spread_face: (M,) ``face`` with the pixels of triangle F (the dump
+    slots, whose gradients are zero) spread over the real triangles, the backward's scatter index.
+    Hand-written backward: the pixels' gradients summed per triangle (9 numbers), then per vertex."""
 
     @staticmethod
-    def forward(ctx, data, face, corners, offset, sign):
+    def forward(ctx, data, face, corners, offset, sign, spread_face):
         at = data.index_select(1, corners).view(6, 3, -1)                               # (6, 3, F+1)
         rel = at[:2] - at[:2, :1]                                                       # x, y from corner 0
         rel_j, rel_k = rel.roll(-1, 1), rel.roll(-2, 1)                                 # corners k+1, k+2
@@ -40,17 +43,18 @@ class _PixelNormals(torch.autograd.Function):
         summed = torch.addcmul(per_pixel[0], per_pixel[2], offset[0]).addcmul_(per_pixel[1], offset[1], value=-1)
         scale = (summed * summed).sum(dim=0).clamp_min(torch.finfo(summed.dtype).tiny).rsqrt() * sign
         normals = summed * scale
-        ctx.save_for_backward(at, rel_j, rel_k, terms, w, normals, scale, face, corners, offset)
+        ctx.save_for_backward(at, rel_j, rel_k, terms, w, normals, scale, spread_face, corners, offset)
         ctx.vertices = data.shape[1]
         return normals
 
     @staticmethod
     def backward(ctx, grad):
-        at, rel_j, rel_k, terms, w, normals, scale, face, corners, offset = ctx.saved_tensors
+        at, rel_j, rel_k, terms, w, normals, scale, spread_face, corners, offset = ctx.saved_tensors
         along = scale * (grad - normals * (normals * grad).sum(dim=0))                 # d/d summed (3, M)
         per_pixel = torch.cat([along, along * offset[1], along * offset[0]])            # d/d planes (9, M)
         per_pixel[3:6].neg_()
-        planes = per_pixel.new_zeros(9, w.shape[2]).index_add_(1, face, per_pixel).view(3, 3, -1)
+        # The dump slots' zeros go to distinct triangles: no triangle gathers thousands of writes.
+        planes = per_pixel.new_zeros(9, w.shape[2]).index_add_(1, spread_face, per_pixel).view(3, 3, -1)
         grad_w = _corner_sum(planes[:, :, None], terms[:, None], dim=0)                # (3, 3, F+1)
         grad_a, grad_d = _corner_sum(planes[:, :, None], w[None]).split([1, 2])       # (1 | 2, 3, F+1)
         # a = x_j y_k − x_k y_j; d = rel_j − rel_k; perp(v) = (v_y, −v_x).
@@ -60,10 +64,10 @@ class _PixelNormals(torch.autograd.Function):
         torch.sub(grad_j.roll(1, 1), minus_grad_k.roll(2, 1), out=grads[:2])          # d/d rel (2, 3, F+1)
         torch.sum(grad_w * w, dim=0, out=grads[2]).div_(at[2]).neg_()                  # d/d depth
         torch.div(grad_w, at[2], out=grads[3:])                                         # d/d normal
-        # Triangle F (vertex 0 thrice) adds zeros (the dump slots, its pixels, get no gradient: no term
-        # or blend reads them), so all rows are added as they lie: no copy of the others'.
+        # Triangle F (vertex 0 thrice) adds zeros (no pixel's gradient reaches it), so all rows are
+        # added as they lie: no copy of the others'.
         grad_data = grads.new_zeros(6, ctx.vertices).index_add_(1, corners, grads.view(6, -1))
-        return grad_data, None, None, None, None
+        return grad_data, None, None, None, None, None
 
 
 def _corner_sum(a: torch.Tensor, b: torch.Tensor, dim: int = 1) -> torch.Tensor:
@@ -91,7 +95,7 @@ class _CrossingWeights(torch.autograd.Function):
     """Blend weights ``|0.5 − d|`` (K,) of silhouette crossings, d ∈ [0, 1] where the edge between
     the vertices ``ends`` (2K,) crosses the segment from the pixel centre (K, 2) to its neighbour
     (along x where ``horizontal``, else y; ``direction`` ±1); and whether d < 0.5 (no gradient).
-    As ``silhouette_crossings``; slots without a crossing (``hit`` false) get finite values.
+    As ``silhouette_crossings``; slots without a crossing (``hit`` false) weigh 0.
     Hand-written backward."""
 
     @staticmethod
@@ -106,7 +110,7 @@ class _CrossingWeights(torch.autograd.Function):
                               direction * ((raw >= 0) & (raw <= 1) & hit) * torch.sign(crossing - 0.5))
         ctx.vertices = screen.shape[0]
         ctx.mark_non_differentiable(crossing)
-        return (0.5 - crossing).abs(), crossing < 0.5
+        return torch.where(hit, 0.5 - crossing, 0.0).abs(), crossing < 0.5
 
     @staticmethod
     def backward(ctx, grad, _):
@@ -121,17 +125,18 @@ class _CrossingWeights(torch.autograd.Function):
         return grad_screen, None, None, None, None, None
 
 
-def crossing_blends(screen: torch.Tensor, pairs: tuple[torch.Tensor, ...], edge_ends: torch.Tensor, dump: int
+def crossing_blends(screen: torch.Tensor, pairs: tuple[torch.Tensor, ...], edge_ends: torch.Tensor
                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Blend targets, sources (K,) and differentiable weights of the silhouette ``pairs``
     (:class:`Visibility`) at the vertices' pixel positions ``screen`` (V, 2); edge_ends: (3(F+1), 2)
-    the endpoints of edge e of triangle t at row 3t + e; masked slots blend the ``dump`` pixel."""
+    the endpoints of edge e of triangle t at row 3t + e. Slots without a crossing weigh 0 and blend
+    real pixels (a masked slot its own pixel with itself), so no one pixel gathers their writes."""
     inner, outer, axis, direction, centre, triangle, edge, hit = pairs
     with torch.no_grad():
         ends = edge_ends.index_select(0, triangle * 3 + edge)                           # (K, 2)
     weight, near_inner = _CrossingWeights.apply(screen, ends.view(-1), centre.T, axis == 0, direction, hit)
     with torch.no_grad():
-        target = torch.where(hit, torch.where(near_inner, inner, outer), dump)
+        target = torch.where(near_inner, inner, outer)
         source = torch.where(near_inner, outer, inner)
     return target, source, weight
 
@@ -163,8 +168,11 @@ class Visibility:
     gradient): the covered pixels (M,) (``SteadyView.pixel``), their triangles (M,), the covered
     mask (extent,), the triangles' area signs at the pixels (M,), the vertex at each pixel's
     triangle's first corner (M,) (the dump slots' triangle F: vertex 0; its normals are zero
-    whatever their offset), the silhouette pairs (the tuple of ``SteadyRenderer._pairs``, K slots)
-    and each padded pixel's slot in ``pixel`` (extent,) (M: not covered)."""
+    whatever their offset), the silhouette pairs (the tuple of ``SteadyRenderer._pairs``, K slots),
+    each padded pixel's slot in ``pixel`` (extent,) (not covered: past M) and ``face`` with the dump
+    slots spread over the real triangles (M,) (``_PixelNormals``' scatter index).
+
+    ``slot`` of an uncovered pixel is M + its index modulo ``UNCOVERED_COLUMNS``."""
 
     pixel: torch.Tensor
     face: torch.Tensor
@@ -173,6 +181,7 @@ class Visibility:
     first_vertex: torch.Tensor
     pairs: tuple[torch.Tensor, ...]
     slot: torch.Tensor
+    spread_face: torch.Tensor
 
 
 class SteadyView:
@@ -181,8 +190,8 @@ class SteadyView:
     pixel: (M,) padded flat indices of the covered pixels, ascending (dump slots: the dump pixel);
     face: (M,) their triangles (F: none); covered: (extent,) bool, whether a padded pixel shows a triangle;
     normals: (3, M) unit camera-space normals, not antialiased, differentiable; target, source,
-    weight: (K,) blends (masked: target the dump pixel); slot: (2, K) the slots in ``pixel`` of
-    target and source (M: not covered).
+    weight: (K,) blends (no crossing: weight 0); slot: (2, K) the slots in ``pixel`` of target and
+    source (M and past: not covered).
     """
 
     def __init__(self, pixel, face, covered, normals, target, source, weight, slot):
@@ -192,8 +201,8 @@ class SteadyView:
     def blended_normals(self) -> torch.Tensor:
         """The normals (3, M) antialiased (the background's normal is 0), as
         ``EdgeCrossings.blend_covered``; differentiable w.r.t. the normals and the weights."""
-        padded = torch.nn.functional.pad(self.normals, (0, 1))
-        return _BlendColumns.apply(padded, self.slot[0], self.slot[1], self.weight)[:, :-1]
+        padded = torch.nn.functional.pad(self.normals, (0, UNCOVERED_COLUMNS))
+        return _BlendColumns.apply(padded, self.slot[0], self.slot[1], self.weight)[:, :-UNCOVERED_COLUMNS]
 
     def blended_coverage(self, dtype: torch.dtype) -> torch.Tensor:
         """The coverage (extent,) antialiased; differentiable w.r.t. the weights."""
