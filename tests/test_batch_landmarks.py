@@ -42,8 +42,9 @@ def fits(out: Path) -> dict[str, dict]:
 
 def test_each_scan_is_fitted_with_its_own_landmarks_as_register_fits_it(scans, tmp_path, embedded_model):
     out = tmp_path / "fits"
+    # One fit a program (a GPU's default steps scans together: test_scans_fitted_together_take_their_own_landmarks).
     code, err = run_cli(["batch", "register", str(scans / "scan*.ply"), "--out-dir", str(out), "--landmarks",
-                         "{stem}.txt", *FAST])
+                         "{stem}.txt", "--together", "1", *FAST])
     assert code == 1, err  # the third scan has no landmarks file
     rows = fits(out)
     assert rows["scan2.ply"]["status"] == "failed" and "no landmarks file" in rows["scan2.ply"]["error"]

@@ -198,3 +198,17 @@ def test_maps_fitted_together_on_cuda_are_captured_as_one_graph(embedded_model, 
         scale = np.ptp(eager.fit.vertices, axis=0).max()
         difference = np.abs(captured.fit.vertices - eager.fit.vertices)
         assert difference.max() < 2e-3 * scale and difference.mean() < 1e-4 * scale
+
+
+def test_per_view_sums_through_partial_sums_are_the_sums():
+    """The GPU's way (partial sums per view, against CUDA's serialised index_add) and the CPU's (one
+    index_add, the default there) give each view's sums, against float64 sums by mask."""
+    from statfit.objectives.normals import per_view_sums
+    generator = torch.Generator().manual_seed(7)
+    values = torch.randn(2, 50_000, generator=generator)
+    owner = torch.randint(0, 5, (50_000,), generator=generator).sort().values        # 4 views and the dump
+    expected = torch.stack([values.double()[:, owner == b].sum(dim=1) for b in range(5)], dim=1)
+    assert torch.equal(per_view_sums(values, owner, 5), per_view_sums(values, owner, 5, spread=1))
+    for spread in (1, 7, 1024):
+        torch.testing.assert_close(per_view_sums(values, owner, 5, spread=spread).double(), expected,
+                                   rtol=1e-5, atol=1e-3)

@@ -238,3 +238,28 @@ def test_no_index_takes_the_masked_lanes_writes(embedded_model):
     covered = int(real.sum())
     assert len(spy.most) >= 6
     assert max(most for _, most in spy.most) < covered / 100, (covered, spy.most)
+
+
+@pytest.mark.parametrize("lookups", [False, True], ids=["scatters", "lookups"])
+def test_a_view_that_outgrows_its_buffers_draws_what_fits(scene, monkeypatch, lookups):
+    """Buffers sized without margin, then the mesh turned a quarter about its z axis (more
+    silhouette, at 96² more pixels near it than the buffer holds): the call drops what does not fit
+    (until the next check resizes), indexing only inside its buffers; every pixel it keeps is one a
+    fresh renderer covers (dropped candidates only uncover pixels, or leave a farther triangle)."""
+    from statfit.renderer import steady
+    monkeypatch.setattr(steady, "MARGIN", 1.0)
+    monkeypatch.setattr(steady, "FLOOR", 0)
+    vertices, faces, camera = scene
+    adjacency = MeshAdjacency.from_faces(faces)
+    renderer = SteadyRenderer(faces, camera, adjacency, torch.float64)
+    renderer.lookups = lookups
+    renderer(vertices)
+    centre = vertices.mean(dim=0)
+    quarter = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    turned = centre + (vertices - centre) @ quarter.T
+    view = renderer(turned)
+    sizes = torch.tensor([renderer._sizes[name] for name in steady._BUFFERS])
+    assert renderer._need[steady._BUFFERS.index("edges")] > sizes[steady._BUFFERS.index("edges")]
+    fresh = SteadyRenderer(faces, camera, adjacency, torch.float64)(turned)
+    kept = view.pixel < renderer.pixels
+    assert kept.sum() > 0 and torch.isin(view.pixel[kept], fresh.pixel[fresh.pixel < renderer.pixels]).all()

@@ -358,8 +358,9 @@ class SteadyRenderer:
         lanes = 4 * slots_m
         direction_id = chosen.div(slots_m, rounding_mode="floor")                      # 4: masked
         used = chosen < lanes
-        # A masked slot pairs a pixel with itself (direction 4: no offset), each its own pixel.
-        spare = self._arange(len(chosen)) % edges_need.clamp_min(1)
+        # A masked slot pairs a pixel with itself (direction 4: no offset), each its own pixel (of
+        # those in the buffer: the need may exceed it until the next check).
+        spare = self._arange(len(chosen)) % edges_need.clamp(1, slots_m)
         m = torch.where(used, chosen - direction_id * slots_m, spare)
         inner = pixel.index_select(0, m)
         outer = inner + self._offset.index_select(0, direction_id)
