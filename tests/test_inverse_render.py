@@ -280,3 +280,16 @@ def test_the_visibility_is_reused_where_no_graph_captures_the_fit_and_never_for_
     assert visibility_every("tuned", cuda) == 1
     monkeypatch.setenv("STATFIT_CUDA_GRAPHS", "0")
     assert visibility_every("tuned", cuda) == 4
+
+
+def test_the_movement_limit_applies_only_where_the_visibility_is_reused(monkeypatch):
+    import statfit.render.visibility as visibility
+    from statfit.render.visibility import visibility_moved
+
+    cpu = torch.device("cpu")
+    monkeypatch.setattr(visibility, "VISIBILITY_MOVED", 1.0)
+    monkeypatch.setattr(visibility, "VISIBILITY_EVERY", 1)
+    assert visibility_moved("tuned", cpu) is None
+    monkeypatch.setattr(visibility, "VISIBILITY_EVERY", 16)
+    assert visibility_moved("tuned", cpu) == 1.0
+    assert visibility_moved("paper", cpu) is None

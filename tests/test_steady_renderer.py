@@ -263,3 +263,35 @@ def test_a_view_that_outgrows_its_buffers_draws_what_fits(scene, monkeypatch, lo
     fresh = SteadyRenderer(faces, camera, adjacency, torch.float64)(turned)
     kept = view.pixel < renderer.pixels
     assert kept.sum() > 0 and torch.isin(view.pixel[kept], fresh.pixel[fresh.pixel < renderer.pixels]).all()
+
+
+def test_a_reused_visibility_is_refreshed_once_a_vertex_has_moved_too_far(scene):
+    """``moved``: a call that would reuse the visibility keeps it while no vertex has moved that many
+    pixels since the last refresh, and refreshes it (a fresh renderer's pixels) once one has."""
+    vertices, faces, camera = scene
+    adjacency = MeshAdjacency.from_faces(faces)
+    renderer = SteadyRenderer(faces, camera, adjacency, torch.float64)
+    renderer(vertices)
+    found = renderer._visible
+    generator = torch.Generator().manual_seed(8)
+    moved = vertices + 1e-3 * torch.randn(vertices.shape, generator=generator, dtype=torch.float64)
+    pixels = float((renderer._project(moved)[2] - found.screen).abs().amax())
+    assert pixels > 0.01
+    kept = renderer(moved, refresh=False, moved=2 * pixels)
+    assert renderer._visible is found and torch.equal(kept.pixel, found.pixel)
+    refreshed = renderer(moved, refresh=False, moved=pixels / 2)
+    fresh = SteadyRenderer(faces, camera, adjacency, torch.float64)(moved)
+    assert renderer._visible is not found
+    mine, theirs = refreshed.pixel < renderer.pixels, fresh.pixel < renderer.pixels        # buffers sized apart
+    assert torch.equal(refreshed.pixel[mine], fresh.pixel[theirs]) and torch.equal(refreshed.face[mine], fresh.face[theirs])
+
+
+@pytest.mark.parametrize("moved", [0.0, -1.0, float("nan")])
+def test_a_movement_limit_that_is_not_above_zero_pixels_is_refused(scene, moved):
+    from statfit.errors import StatfitError
+    from statfit.objectives.normals import NormalMapObjective
+
+    vertices, faces, camera = scene
+    normals, mask = torch.zeros(camera.height, camera.width, 3), torch.ones(camera.height, camera.width, dtype=torch.bool)
+    with pytest.raises(StatfitError, match="visibility_moved must be a number of pixels above 0"):
+        NormalMapObjective(normals, mask, camera, faces, visibility_every=4, visibility_moved=moved)

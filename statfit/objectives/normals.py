@@ -54,15 +54,19 @@ class NormalMapObjective:
     def __init__(self, normals: torch.Tensor, mask: torch.Tensor, camera: Camera | Sequence[Camera],
                  faces: torch.Tensor, silhouette_weight: float = SILHOUETTE_WEIGHT,
                  adjacency: MeshAdjacency | None = None, region_faces: torch.Tensor | None = None,
-                 one_sided: bool = False, covering: bool = False, visibility_every: int = 1):
+                 one_sided: bool = False, covering: bool = False, visibility_every: int = 1,
+                 visibility_moved: float | None = None):
         """normals: (H, W, 3) target unit normals in camera space, or (B, H, W, 3) for B views;
         mask: (H, W) or (B, H, W) bool target coverage; camera: one per view; faces: (F, 3) long on
         the normals' device; adjacency: ``MeshAdjacency.from_faces(faces)``, pass it to share it
         between objectives; region_faces: (F,) bool, the triangles whose pixels the normal term uses
         (all when None); one_sided, covering: the one-sided silhouette terms; visibility_every: calls
-        per refresh of the visibility (1: every call)."""
+        per refresh of the visibility (1: every call); visibility_moved: pixels, refresh also in
+        between once a vertex has moved this far since the last refresh (None: by the count alone)."""
         if isinstance(visibility_every, bool) or not isinstance(visibility_every, int) or visibility_every < 1:
             raise StatfitError(f"visibility_every must be a whole number of calls, 1 or more, got {visibility_every!r}")
+        if visibility_moved is not None and not visibility_moved > 0:
+            raise StatfitError(f"visibility_moved must be a number of pixels above 0, got {visibility_moved!r}")
         self.views = len(normals) if normals.dim() == 4 else None
         views = self.views or 1
         normals, mask = normals.view(views, *normals.shape[-3:]), mask.view(views, *mask.shape[-2:])
@@ -94,7 +98,7 @@ class NormalMapObjective:
             self._view = torch.nn.functional.pad(self._view, (0, width + 3), value=views)
             self._silhouette_scale = (silhouette_weight / counts.double()).repeat_interleave(view_pixels)
         self._renderer: SteadyRenderer | None = None
-        self.visibility_every = visibility_every
+        self.visibility_every, self.visibility_moved = visibility_every, visibility_moved
         self._calls = 0
 
     @property
@@ -140,7 +144,7 @@ class NormalMapObjective:
                 self._silhouette_scale = self._silhouette_scale.to(vertices.dtype)
         refresh = refresh or self._calls % self.visibility_every == 0
         self._calls += 1
-        return self._renderer(vertices, refresh)
+        return self._renderer(vertices, refresh, self.visibility_moved)
 
     def _covered(self, view) -> tuple[torch.Tensor, torch.Tensor]:
         """The target's rows (4, M) at the view's covered pixels (before antialiasing), and whether

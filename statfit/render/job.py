@@ -31,7 +31,7 @@ from statfit.core.methods import resolve
 from statfit.core.settings import FitSpace, Settings
 from statfit.model.statmodel import StatModel, region_triangles
 from statfit.objectives.normals import SILHOUETTE_WEIGHT, NormalMapObjective
-from statfit.render.visibility import visibility_every
+from statfit.render.visibility import visibility_every, visibility_moved
 from statfit.core.pose import camera_in_frame, fit_pose
 from statfit.core.device import resolve_device
 from statfit.renderer import Camera, MeshAdjacency, rasterize
@@ -194,7 +194,8 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
         view = PosedView.of(model, normal_map, camera, torch_device, dtype, normal_space=normal_space,
                             normal_convention=normal_convention, align=align, init=init,
                             silhouette_weight=silhouette_weight, silhouette=silhouette, region=region, timer=timer,
-                            visibility_every=visibility_every(preset, torch_device))
+                            visibility_every=visibility_every(preset, torch_device),
+                            visibility_moved=visibility_moved(preset, torch_device))
         snapshot = None if on_snapshot is None else lambda it, x: on_snapshot(it, view.to_world(x))
         result = run_stages(stages, view.space, view.objective, view.start, on_record=on_record,
                             on_snapshot=snapshot, timer=timer)
@@ -235,7 +236,8 @@ class PosedView:
     def of(cls, model: StatModel, normal_map: NormalMap, camera: Camera, device: torch.device, dtype: torch.dtype, *,
            normal_space: str = "world", normal_convention: str = "opencv", align: str = "rigid",
            init: np.ndarray | None = None, silhouette_weight: float = SILHOUETTE_WEIGHT, silhouette: str = "auto",
-           region: str | None = None, timer: StageTimer | None = None, visibility_every: int = 1) -> PosedView:
+           region: str | None = None, timer: StageTimer | None = None, visibility_every: int = 1,
+           visibility_moved: float | None = None) -> PosedView:
         """Check the map and the framing, find the pose (``align``) and set up the data terms."""
         sides = silhouette_sides(silhouette, model)
         one_sided, covering = sides == "one-sided", sides == "covering"
@@ -258,12 +260,12 @@ class PosedView:
                 guess = _centring_guess(x0, faces, unit_camera, normal_map.mask, align == "similarity")
                 coarse = NormalMapObjective(*downsampled(target, mask, unit_camera, ALIGN_SIZE), faces,
                                             silhouette_weight, adjacency, one_sided=one_sided, covering=covering,
-                                            visibility_every=visibility_every)
+                                            visibility_every=visibility_every, visibility_moved=visibility_moved)
                 pose, x0 = _align(x0, coarse, space, guess, align == "similarity", unit_camera.rotation[2].to(dtype))
         posed_camera = camera_in_frame(camera, frame, pose)
         options = dict(faces=faces, silhouette_weight=silhouette_weight if region is None else 0.0,
                        adjacency=adjacency, region_faces=region_faces, one_sided=one_sided, covering=covering,
-                       visibility_every=visibility_every)
+                       visibility_every=visibility_every, visibility_moved=visibility_moved)
         objective = NormalMapObjective(target, mask, posed_camera, **options)
         return cls(space, objective, x0, frame, pose, target, mask, posed_camera, options)
 

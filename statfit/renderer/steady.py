@@ -183,13 +183,17 @@ class SteadyRenderer:
 
     # --- the view -----------------------------------------------------------------------------------------
 
-    def __call__(self, vertices: torch.Tensor, refresh: bool = True) -> SteadyView:
+    def __call__(self, vertices: torch.Tensor, refresh: bool = True, moved: float | None = None) -> SteadyView:
         """The view of ``vertices`` (N, 3), or (B, N, 3). ``refresh`` False: with the visibility of
         the last refreshed call (which pixel shows which triangle, the silhouette pairs and the
         edges they cross, :class:`Visibility`): the normals and the crossings move with the
-        vertices, the pixels they are drawn at do not (the fitting loop's reuse, docs/method.md)."""
+        vertices, the pixels they are drawn at do not (the fitting loop's reuse, docs/method.md);
+        unless a vertex has moved more than ``moved`` pixels since that refresh (one host read)."""
         camera_points, depth, screen = self._project(vertices)
         normals = _vertex_normals(camera_points, self._corners)                          # (3, N)
+        if not refresh and moved is not None and self._visible is not None:
+            with torch.no_grad():
+                refresh = bool((screen - self._visible.screen).abs().amax() > moved)
         if refresh or self._visible is None:
             with torch.no_grad():
                 self._visible = self._visibility(screen, depth)
@@ -230,7 +234,7 @@ class SteadyRenderer:
         spread_face = torch.where(face < count, face, self._spread(len(face), count))
         pairs, pair_need = self._pairs(keys, pixel, face, flags, walk)
         self._check(torch.cat([raster_need, running[-1:], pair_need]))
-        return Visibility(pixel, face, covered, sign, first_vertex, pairs, slot, spread_face)
+        return Visibility(pixel, face, covered, sign, first_vertex, pairs, slot, spread_face, screen)
 
     def _project(self, vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Camera-space points (V, 3), their depths (V, 1) and pixel positions (V, 2) of ``vertices``

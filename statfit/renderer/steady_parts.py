@@ -170,7 +170,8 @@ class Visibility:
     triangle's first corner (M,) (the dump slots' triangle F: vertex 0; its normals are zero
     whatever their offset), the silhouette pairs (the tuple of ``SteadyRenderer._pairs``, K slots),
     each padded pixel's slot in ``pixel`` (extent,) (not covered: past M) and ``face`` with the dump
-    slots spread over the real triangles (M,) (``_PixelNormals``' scatter index).
+    slots spread over the real triangles (M,) (``_PixelNormals``' scatter index); and the vertices'
+    pixel positions it was found at (V, 2).
 
     ``slot`` of an uncovered pixel is M + its index modulo ``UNCOVERED_COLUMNS``."""
 
@@ -182,6 +183,7 @@ class Visibility:
     pairs: tuple[torch.Tensor, ...]
     slot: torch.Tensor
     spread_face: torch.Tensor
+    screen: torch.Tensor
 
 
 class SteadyView:
