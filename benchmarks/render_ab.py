@@ -3,15 +3,16 @@
     python benchmarks/render_ab.py [--against REV] [--size 512] [--rounds 20] [--model ict|embedded] [--every K]
 
 Issue 38's CPU target is a ratio (a render iteration at 512² on one core ≤ 0.7× a baseline's), and
-separate runs on one machine vary by ±15% (docs/benchmarks.md §12). So both objectives are timed in
-one process on one thread, alternating every 10 calls at the same vertices. The revision's renderer
-(``statfit/renderer/steady.py``, ``steady_parts.py``) and objective (``statfit/objectives/normals.py``)
-are read with ``git show`` and imported under other names; everything else is this tree's. The case:
-ICT jaw-open (``benchmarks/cases.py``), or a sample of the embedded head (``--model embedded``), seen
-at yaw 20°. Prints each objective's min and median ms per call with its backward, the ratio of the
-medians, and whether the values and gradients are the same bits (``torch.equal``). ``--every K``: this
-tree's objective refreshes its visibility every K calls (the render default's reuse, docs/method.md;
-the calls between reuse it at the same vertices, which gives the same bits: what the loop pays).
+separate runs on one machine vary by ±15% (docs/benchmarks.md §12). So both objectives are timed in one
+process on one thread, alternating every 10 calls at the same vertices. The revision's renderer
+(``statfit/renderer/steady.py``, ``steady_parts.py``, ``steady_buffers.py``) and objective
+(``statfit/objectives/normals.py``) are read with ``git show`` and imported under other names;
+everything else is this tree's. The case: ICT jaw-open (``benchmarks/cases.py``), or a sample of the
+embedded head (``--model embedded``), seen at yaw 20°. Prints each objective's min and median ms per
+call with its backward, the ratio of the medians, and whether the values and gradients are the same bits
+(``torch.equal``). ``--every K``: this tree's objective refreshes its visibility every K calls (the
+render default's reuse, docs/method.md; the calls between reuse it at the same vertices, which gives the
+same bits: what the loop pays).
 """
 from __future__ import annotations
 
@@ -30,10 +31,13 @@ import torch
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-# The revision's modules, each importing the others under their new names.
-MODULES = {"statfit.renderer.steady_parts": "statfit/renderer/steady_parts.py",
+# The revision's modules, each importing the others under their new names (the buffers' module
+# is not in revisions before session 23's).
+MODULES = {"statfit.renderer.steady_buffers": "statfit/renderer/steady_buffers.py",
+           "statfit.renderer.steady_parts": "statfit/renderer/steady_parts.py",
            "statfit.renderer.steady": "statfit/renderer/steady.py",
            "statfit.objectives.normals": "statfit/objectives/normals.py"}
+OPTIONAL = {"statfit.renderer.steady_buffers"}
 ALTERNATE_EVERY = 10
 
 
@@ -42,6 +46,8 @@ def revision_objective(revision: str, folder: Path) -> type:
     renamed = {name: "_rev_" + name.rsplit(".", 1)[1] for name in MODULES}
     for name, path in MODULES.items():
         done = subprocess.run(["git", "-C", str(ROOT), "show", f"{revision}:{path}"], capture_output=True, text=True)
+        if done.returncode != 0 and name in OPTIONAL:
+            continue
         if done.returncode != 0:
             sys.exit(f"render_ab: cannot read {path} at {revision}: {done.stderr.strip()}")
         source = done.stdout
@@ -84,7 +90,8 @@ def compare(revision: str, model_name: str, size: int, rounds: int, every: int =
     torch.set_num_threads(1)
     model, normal_map, camera = case(model_name, size)
     view = PosedView.of(model, normal_map, camera, torch.device("cpu"), torch.float32, align="none")
-    options = {name: value for name, value in view.options.items() if name != "visibility_every"}
+    # The shared options, less the visibility's reuse (this tree's alone, set below; refreshed every call).
+    options = {name: value for name, value in view.options.items() if not name.startswith("visibility_")}
     with tempfile.TemporaryDirectory() as folder:
         old = revision_objective(revision, Path(folder))(view.target, view.mask, view.camera, **options)
     new = NormalMapObjective(view.target, view.mask, view.camera, **options, visibility_every=every)

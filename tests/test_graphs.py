@@ -20,7 +20,7 @@ from statfit.core.parametrize import FilteredVertices
 from statfit.core.solvers import DENSE_LIMIT, auto_solver, make_solver
 from statfit.errors import StatfitError
 from statfit.objectives.normals import NormalMapObjective
-from statfit.renderer import steady
+from statfit.renderer import steady_buffers
 
 from conftest import normal_map_scene
 
@@ -114,13 +114,13 @@ def test_the_loop_counts_the_replays_for_the_renderer(embedded_model, monkeypatc
     objective(x)
     renderer = objective._renderer
     calls = renderer._calls
-    assert not any(objective.replayed() for _ in range(steady.CHECK_EVERY))
-    assert renderer._calls == calls + steady.CHECK_EVERY
+    assert not any(objective.replayed() for _ in range(steady_buffers.CHECK_EVERY))
+    assert renderer._calls == calls + steady_buffers.CHECK_EVERY
     renderer._sizes["pixels"] = 1               # as if the view had grown past its buffer
     objective(x)
-    due = -(renderer._calls + 1) % steady.CHECK_EVERY      # the replay whose count is a multiple of CHECK_EVERY
-    flags = [objective.replayed() for _ in range(steady.CHECK_EVERY)]
-    assert flags == [i == due for i in range(steady.CHECK_EVERY)]
+    due = -(renderer._calls + 1) % steady_buffers.CHECK_EVERY      # the replay whose count is a multiple of CHECK_EVERY
+    flags = [objective.replayed() for _ in range(steady_buffers.CHECK_EVERY)]
+    assert flags == [i == due for i in range(steady_buffers.CHECK_EVERY)]
     assert "pixels" not in renderer._sizes
 
 
@@ -163,8 +163,8 @@ def test_a_hybrid_fit_with_the_dense_solve_is_captured(embedded_model, monkeypat
 def test_a_view_that_outgrows_its_buffers_is_captured_again(embedded_model, monkeypatch):
     """Buffers sized without margin overflow as the fit moves: the loop runs eagerly and captures
     again, and the fit ends where the fit run op by op does."""
-    monkeypatch.setattr(steady, "MARGIN", 1.0)
-    monkeypatch.setattr(steady, "FLOOR", 0)
+    monkeypatch.setattr(steady_buffers, "MARGIN", 1.0)
+    monkeypatch.setattr(steady_buffers, "FLOOR", 0)
     normal_map, camera = normal_map_scene(embedded_model, 64)
     start = embedded_model.template * 0.9 + embedded_model.template.mean(axis=0) * 0.1   # grows towards the map
 

@@ -246,9 +246,9 @@ def test_a_view_that_outgrows_its_buffers_draws_what_fits(scene, monkeypatch, lo
     silhouette, at 96² more pixels near it than the buffer holds): the call drops what does not fit
     (until the next check resizes), indexing only inside its buffers; every pixel it keeps is one a
     fresh renderer covers (dropped candidates only uncover pixels, or leave a farther triangle)."""
-    from statfit.renderer import steady
-    monkeypatch.setattr(steady, "MARGIN", 1.0)
-    monkeypatch.setattr(steady, "FLOOR", 0)
+    from statfit.renderer import steady_buffers
+    monkeypatch.setattr(steady_buffers, "MARGIN", 1.0)
+    monkeypatch.setattr(steady_buffers, "FLOOR", 0)
     vertices, faces, camera = scene
     adjacency = MeshAdjacency.from_faces(faces)
     renderer = SteadyRenderer(faces, camera, adjacency, torch.float64)
@@ -258,8 +258,8 @@ def test_a_view_that_outgrows_its_buffers_draws_what_fits(scene, monkeypatch, lo
     quarter = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
     turned = centre + (vertices - centre) @ quarter.T
     view = renderer(turned)
-    sizes = torch.tensor([renderer._sizes[name] for name in steady._BUFFERS])
-    assert renderer._need[steady._BUFFERS.index("edges")] > sizes[steady._BUFFERS.index("edges")]
+    sizes = torch.tensor([renderer._sizes[name] for name in steady_buffers.BUFFERS])
+    assert renderer._need[steady_buffers.BUFFERS.index("edges")] > sizes[steady_buffers.BUFFERS.index("edges")]
     fresh = SteadyRenderer(faces, camera, adjacency, torch.float64)(turned)
     kept = view.pixel < renderer.pixels
     assert kept.sum() > 0 and torch.isin(view.pixel[kept], fresh.pixel[fresh.pixel < renderer.pixels]).all()

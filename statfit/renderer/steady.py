@@ -6,7 +6,7 @@ out for a loop that calls it every iteration, on a GPU as on a CPU:
 
 * static shapes: the z-buffer's rows (triangle, bounding-box row) and covered (triangle, pixel)
   pairs, the covered pixels and the pixel pairs examined for silhouette crossings live in buffers
-  sized at the first call (the need measured then × ``MARGIN``, plus ``FLOOR``), enumerated by
+  (:mod:`statfit.renderer.steady_buffers`) sized at the first call (the need measured then × ``MARGIN``, plus ``FLOOR``), enumerated by
   ``cumsum`` of start marks and addressed with masks instead of ``nonzero``, boolean indexing or
   ``repeat_interleave``. Nothing is read back to the host in the steady state except, every
   ``CHECK_EVERY`` calls, whether the largest need since the last check exceeded a buffer (one
@@ -33,26 +33,22 @@ rounding (float64: within 1e-10, gradients included: tests/test_steady_renderer.
 """
 from __future__ import annotations
 
-import math
 from typing import Sequence
 
 import torch
 
 from statfit.renderer.raster import _EMPTY, _row_span
 from statfit.renderer.silhouette import MeshAdjacency
+from statfit.renderer.steady_buffers import SteadyBuffers
 from statfit.renderer.steady_parts import (UNCOVERED_COLUMNS, SteadyView, Visibility, _columns, _PixelNormals,
                                            _silhouette_flags, _vertex_normals, crossing_blends, mesh_copies,
                                            walk_to_silhouette)
 from statfit.structures.camera import Camera
 
-MARGIN = 1.25       # buffer size / need at sizing
-FLOOR = 256         # and at least this many slots more
-CHECK_EVERY = 16    # calls between reads of the largest need (the only host reads in the steady state)
 _LOW32 = 0xFFFFFFFF
-_BUFFERS = ("rows", "candidates", "pixels", "edges", "pairs")
 
 
-class SteadyRenderer:
+class SteadyRenderer(SteadyBuffers):
     """Antialiased camera-space normals and coverage of a fixed mesh topology in a fixed camera.
 
     faces: (F, 3) long; adjacency: ``MeshAdjacency.from_faces(faces)``; dtype: the vertices'. Call
@@ -76,12 +72,8 @@ class SteadyRenderer:
                 raise ValueError("several views need the vertex count of one mesh")
             faces, adjacency = mesh_copies(faces, adjacency, views, vertex_count)
         device = faces.device
-        self.device, self.dtype, self.near, self.views = device, dtype, near, views
-        # CUDA's deterministic scatters (index_add, index_put with accumulate) sort their indices and
-        # add each index's writes one after another: a slot that thousands of masked lanes write
-        # takes milliseconds. On a GPU the enumerations look slots up (searchsorted) instead of
-        # scattering, and masked lanes that must scatter write zeros to distinct real slots.
-        self.lookups = device.type != "cpu"
+        super().__init__(device)
+        self.dtype, self.near, self.views = dtype, near, views
         self.height, self.width = height, width
         self.stride = stride = width + 2
         self.view_pixels = view_pixels = (height + 2) * stride          # one padded image
@@ -129,57 +121,7 @@ class SteadyRenderer:
         self._axis = torch.tensor([0, 0, 1, 1, 0], **long)
         self._direction = torch.tensor([1.0, -1.0, 1.0, -1.0, 1.0], dtype=dtype, device=device)
         self._axis_bits = torch.tensor([[0], [0], [1], [1]], dtype=torch.uint8, device=device)  # code bit
-        self._sizes: dict[str, int] = {}
-        self._aranges: dict = {}
-        self._need: torch.Tensor | None = None
-        self._calls = 0
         self._visible: Visibility | None = None
-
-    # --- buffers ----------------------------------------------------------------------------------------
-
-    def _size(self, name: str, need: torch.Tensor) -> int:
-        """The buffer size for ``name``; measured (one host read) only when not sized yet."""
-        if name not in self._sizes:
-            self._sizes[name] = int(math.ceil(int(need) * MARGIN)) + FLOOR
-        return self._sizes[name]
-
-    def _ones(self, size: int) -> torch.Tensor:
-        if -size not in self._aranges:
-            self._aranges[-size] = torch.ones(size, dtype=torch.long, device=self.device)
-        return self._aranges[-size]
-
-    def _arange(self, size: int) -> torch.Tensor:
-        if size not in self._aranges:
-            self._aranges[size] = torch.arange(size, dtype=torch.long, device=self.device)
-        return self._aranges[size]
-
-    def _spread(self, size: int, modulus: int) -> torch.Tensor:
-        """0, 1, … modulo ``modulus`` (size,): distinct slots for masked lanes to write nothing into."""
-        if ("spread", size, modulus) not in self._aranges:
-            self._aranges["spread", size, modulus] = self._arange(size) % modulus
-        return self._aranges["spread", size, modulus]
-
-    def _check(self, need: torch.Tensor) -> None:
-        """Keep the largest need (on the device, in place) and count the call (:meth:`replayed`),
-        unless a CUDA graph is capturing it: then whoever replays it counts."""
-        self._need = need.clone() if self._need is None else torch.maximum(self._need, need, out=self._need)
-        if not (self.device.type == "cuda" and torch.cuda.is_current_stream_capturing()):
-            self.replayed()
-
-    def replayed(self) -> bool:
-        """Count a call (or a replay); every ``CHECK_EVERY`` read whether the largest need since
-        the last read exceeded a buffer (one host read) and forget those buffers' sizes: True if
-        any was (the next call sizes them afresh, a host read: not while a graph captures it)."""
-        self._calls += 1
-        if self._calls % CHECK_EVERY or self._need is None:
-            return False
-        sizes = torch.tensor([self._sizes[name] for name in _BUFFERS], device=self.device)
-        over = (self._need > sizes).tolist()
-        self._need.zero_()
-        for name, too_small in zip(_BUFFERS, over):
-            if too_small:
-                del self._sizes[name]
-        return any(over)
 
     # --- the view -----------------------------------------------------------------------------------------
 
@@ -247,42 +189,6 @@ class SteadyRenderer:
         depth = camera_points[..., 2:]
         screen = camera_points[..., :2].bmm(self._focal_t) / depth + self._principal
         return camera_points.view(-1, 3), depth.reshape(-1, 1), screen.view(-1, 2)
-
-    def _select(self, flags: torch.Tensor, name: str, slot_map: bool = False
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-        """The indices of the set ``flags`` (L,) bool, ascending, in a buffer of slots (past the
-        last: L), the running count (L,) (its last entry: the need) and, with ``slot_map`` (or on a
-        CPU, where it is made anyway), each lane's slot (L,) (unset lanes: the buffer's size). On a
-        GPU each slot looks its lane up (``searchsorted`` in the running count): a scatter's many
-        writes to one dump slot serialise under CUDA's deterministic algorithms. On a CPU the
-        scatter is the faster."""
-        running = torch.cumsum(flags, 0)
-        slots = self._size(name, running[-1])
-        slot = torch.where(flags, running - 1, slots).clamp_max_(slots) if slot_map or not self.lookups else None
-        if self.lookups:
-            if ("from 1", slots) not in self._aranges:
-                self._aranges["from 1", slots] = torch.arange(1, slots + 1, dtype=torch.long, device=self.device)
-            return torch.searchsorted(running, self._aranges["from 1", slots]), running, slot
-        lanes = torch.full((slots + 1,), len(flags), dtype=torch.long, device=self.device)
-        return lanes.scatter_(0, slot, self._arange(len(flags)))[:slots], running, slot
-
-    def _owners(self, counts: torch.Tensor, name: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Enumerate (owner, index) pairs, 0 ≤ index < counts[owner], into a buffer of slots: owner
-        (slots,) (len(counts): past the end) and index (slots,); and the need (0-d). The owner of a
-        slot is the number of owners that end at or before it: on a GPU ``searchsorted``; on a CPU
-        without its binary search, the owners whose first pair lies at or before the slot, less one
-        (a scatter of start marks: on a GPU the owners without pairs would all mark one slot)."""
-        ends = torch.cumsum(counts, 0)
-        slots = self._size(name, ends[-1])
-        starts = ends - counts
-        if self.lookups:
-            owner = torch.searchsorted(ends, self._arange(slots), right=True)
-        else:
-            marks = torch.zeros(slots + 1, dtype=torch.long, device=self.device)
-            owner = marks.index_add_(0, starts.clamp_max(slots), self._ones(len(counts))).cumsum_(0)[:slots] - 1
-            owner = torch.where(self._arange(slots) < ends[-1], owner, len(counts))
-        padded = torch.nn.functional.pad(starts, (0, 1), value=0)
-        return owner, self._arange(slots) - padded.index_select(0, owner), ends[-1]
 
     def _zbuffer(self, corner: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Packed (depth bits, triangle) keys (extent,) of the nearest triangle per pixel
