@@ -61,7 +61,7 @@ def test_the_objective_runs_without_host_waits_in_few_ops(embedded_model):
     check, every 16th call). 694 before the per-pixel normals were set up per triangle: 49 ops
     more (triangle-sized) for 13–17% less time a call at 512² on one CPU thread. 752 since 2026-11-27:
     products over a size-3 axis added in order (the same bits) instead of made whole and summed, for
-    3–9% less time a call (ICT, 128² and 512², one thread; docs/benchmarks.md §12). 758 since
+    3–9% less time a call (ICT, 128² and 512², one thread; docs/benchmarks.md §12). 754 since
     2026-11-27 (session 23): masked lanes write zeros to distinct slots instead of one dump slot,
     which CUDA's deterministic scatters serialise (docs/method.md)."""
     normal_map, camera = normal_map_scene(embedded_model, SIZE)
@@ -90,7 +90,7 @@ def test_a_render_iteration_counts(embedded_model):
     0.06 waits per iteration in all (the renderer's overflow check every 16th call; 1.3 before the
     normal-map objective deferred the loop's finiteness test to its record steps). 775 since
     2026-11-27: products over a size-3 axis added in order (the same bits) instead of made whole and
-    summed, for 3–9% less time an iteration on one CPU thread (docs/benchmarks.md §12). 781 since
+    summed, for 3–9% less time an iteration on one CPU thread (docs/benchmarks.md §12). 777 since
     session 23: no dump slot for CUDA's deterministic scatters to serialise (docs/method.md)."""
     normal_map, camera = normal_map_scene(embedded_model, SIZE)
 

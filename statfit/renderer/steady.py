@@ -167,13 +167,13 @@ class SteadyRenderer(SteadyBuffers):
         covered = triangle < count
         # Covered pixels, ascending, into a buffer of M slots (dump slots: the dump pixel).
         pixel, running, slot = self._select(covered, "pixels", slot_map=True)          # lanes: pixels; pixel → slot
-        # A blend into an uncovered pixel writes a column past the covered slots, spread over a few.
-        slot = torch.where(covered, slot, slot + self._spread(len(slot), UNCOVERED_COLUMNS))
+        if self.lookups:    # a blend into an uncovered pixel writes a column past the covered slots, one of a few
+            slot = torch.where(covered, slot, slot + self._spread(len(slot), UNCOVERED_COLUMNS))
         pixel.clamp_max_(self.pixels)
         face = triangle.index_select(0, pixel)
         sign = torch.cat([area2.sign(), area2.new_ones(1)]).index_select(0, face)
         first_vertex = self._padded_corners.index_select(0, face)      # corner 0 of each (F: vertex 0)
-        spread_face = torch.where(face < count, face, self._spread(len(face), count))
+        spread_face = torch.where(face < count, face, self._spread(len(face), count)) if self.lookups else face
         pairs, pair_need = self._pairs(keys, pixel, face, flags, walk)
         self._check(torch.cat([raster_need, running[-1:], pair_need]))
         return Visibility(pixel, face, covered, sign, first_vertex, pairs, slot, spread_face, screen)
