@@ -23,7 +23,8 @@ out for a loop that calls it every iteration, on a GPU as on a CPU:
 Images are flat over the pixels of the image padded by one pixel on every side (so neighbours never
 need a bounds test), then one dump slot that masked lanes point at (and its neighbours). Masked
 lanes that scatter write nothing (a zero, or no key) into distinct real slots instead: CUDA's
-deterministic scatters add each slot's writes one after another.
+deterministic scatters add each slot's writes one after another. On a CPU, where a shared slot
+costs nothing, the dump pixels' gradients and the blends into uncovered pixels keep one slot each.
 
 The z-buffer and the pairs are those of the general functions (the same row spans and depth keys:
 the same triangle per pixel); the normals are the edge functions' sum, set up per triangle as an
