@@ -31,7 +31,7 @@ from statfit.core.methods import resolve
 from statfit.core.settings import FitSpace, Settings
 from statfit.model.statmodel import StatModel, region_triangles
 from statfit.objectives.normals import SILHOUETTE_WEIGHT, NormalMapObjective
-from statfit.render.visibility import visibility_every, visibility_moved
+from statfit.render.visibility import visibility_options
 from statfit.core.pose import camera_in_frame, fit_pose
 from statfit.core.device import resolve_device
 from statfit.renderer import Camera, MeshAdjacency, rasterize
@@ -194,8 +194,7 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
         view = PosedView.of(model, normal_map, camera, torch_device, dtype, normal_space=normal_space,
                             normal_convention=normal_convention, align=align, init=init,
                             silhouette_weight=silhouette_weight, silhouette=silhouette, region=region, timer=timer,
-                            visibility_every=visibility_every(preset, torch_device),
-                            visibility_moved=visibility_moved(preset, torch_device))
+                            **visibility_options(preset, torch_device))
         snapshot = None if on_snapshot is None else lambda it, x: on_snapshot(it, view.to_world(x))
         result = run_stages(stages, view.space, view.objective, view.start, on_record=on_record,
                             on_snapshot=snapshot, timer=timer)

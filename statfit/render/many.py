@@ -28,7 +28,7 @@ from statfit.errors import StatfitError
 from statfit.model.statmodel import StatModel
 from statfit.objectives.normals import SILHOUETTE_WEIGHT, NormalMapObjective
 from statfit.render.job import RENDER_FLOATS_PER_PIXEL, PosedView, checked_stages, silhouette_sides
-from statfit.render.visibility import visibility_every, visibility_moved
+from statfit.render.visibility import visibility_options
 from statfit.renderer import Camera
 from statfit.structures.normal_map import NormalMap
 
@@ -77,8 +77,7 @@ def reconstruct_many(model: StatModel, normal_maps: Sequence[NormalMap], cameras
     members = [_View(i) for i in range(len(normal_maps))]
     options = dict(normal_space=normal_space, normal_convention=normal_convention, align=align,
                    silhouette_weight=silhouette_weight, silhouette=silhouette_sides(silhouette, model), region=region,
-                   visibility_every=visibility_every(preset, torch_device),
-                   visibility_moved=visibility_moved(preset, torch_device))
+                   **visibility_options(preset, torch_device))
     with intra_op_threads(threads):
         torch.manual_seed(seed)
         for member, normal_map, camera in zip(members, normal_maps, cameras):

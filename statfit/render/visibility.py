@@ -26,3 +26,9 @@ def visibility_moved(preset: str, device: torch.device) -> float | None:
     """Pixels a vertex may move before the visibility is refreshed early: :data:`VISIBILITY_MOVED`
     where the visibility is reused at all (:func:`visibility_every`), else None."""
     return None if visibility_every(preset, device) == 1 else VISIBILITY_MOVED
+
+
+def visibility_options(preset: str, device: torch.device) -> dict:
+    """Both rules as the normal-map objective's keyword arguments (``visibility_every``,
+    ``visibility_moved``)."""
+    return {"visibility_every": visibility_every(preset, device), "visibility_moved": visibility_moved(preset, device)}

@@ -6,13 +6,14 @@ out for a loop that calls it every iteration, on a GPU as on a CPU:
 
 * static shapes: the z-buffer's rows (triangle, bounding-box row) and covered (triangle, pixel)
   pairs, the covered pixels and the pixel pairs examined for silhouette crossings live in buffers
-  (:mod:`statfit.renderer.steady_buffers`) sized at the first call (the need measured then × ``MARGIN``, plus ``FLOOR``), enumerated by
-  ``cumsum`` of start marks and addressed with masks instead of ``nonzero``, boolean indexing or
-  ``repeat_interleave``. Nothing is read back to the host in the steady state except, every
-  ``CHECK_EVERY`` calls, whether the largest need since the last check exceeded a buffer (one
-  read); a buffer that did is sized afresh at the next call. The calls in between dropped what did
-  not fit: with the margin, that takes a view whose covered area grows by a quarter within
-  ``CHECK_EVERY`` steps (a fit moves far less; the alignment's scale step of 1% moves ~30%);
+  (:mod:`statfit.renderer.steady_buffers`) sized at the first call (the need measured then ×
+  ``MARGIN``, plus ``FLOOR``), enumerated by ``cumsum`` of start marks and addressed with masks
+  instead of ``nonzero``, boolean indexing or ``repeat_interleave``. Nothing is read back to the
+  host in the steady state except, every ``CHECK_EVERY`` calls, whether the largest need since the
+  last check exceeded a buffer (one read); a buffer that did is sized afresh at the next call. The
+  calls in between dropped what did not fit: with the margin, that takes a view whose covered area
+  grows by a quarter within ``CHECK_EVERY`` steps (a fit moves far less; the alignment's scale step
+  of 1% moves ~30%);
 * what depends only on the topology or the camera (corner and opposite-vertex indices, the
   triangles within two edge steps of each triangle, pixel centres, the projection) is built once;
 * per-pixel and per-pair work is component-major in few, large ops; the walk from a pixel pair to
