@@ -40,3 +40,36 @@ def test_matches_largesteps_adam_uniform():
         ours.step()
         theirs.step()
     torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("capturable", [False, True])
+def test_a_settling_step_falls_linearly_to_zero_over_the_last_share(capturable):
+    """With a constant gradient every Adam step is lr · share(t) (m̂ = g, v̂ = g²), so each step's
+    length is the schedule itself: held at lr for t ≤ 6 of 11, then (11 − t)/5 of it, 0 at the last."""
+    p = torch.zeros(4, dtype=torch.float64, requires_grad=True)
+    opt = UniformAdam([p], lr=0.1, eps=0.0, capturable=capturable, steps=11, settle=0.5)
+    lengths = []
+    for _ in range(11):
+        before = p.detach().clone()
+        p.grad = torch.full((4,), -2.0, dtype=torch.float64)
+        opt.step()
+        lengths.append(float((p.detach() - before)[0]))
+    expected = [0.1 * min(1.0, (11 - t) / 5) for t in range(1, 12)]
+    assert lengths == pytest.approx(expected, rel=1e-12, abs=1e-15)
+
+
+def test_settle_is_checked_and_only_for_uniform_adam():
+    """Out-of-range values, a Gauss–Newton stage and a torch Adam stage are refused in one line each."""
+    from statfit.core.methods import build
+    from statfit.core.settings import FitSpace, Settings
+    from statfit.errors import StatfitError
+
+    for bad in (-0.1, 1.5, float("nan")):
+        with pytest.raises(StatfitError, match="settle"):
+            Settings("laplacian", 10, 0.1, settle=bad)
+    with pytest.raises(StatfitError, match="settle"):
+        Settings("pca", 10, 0.0, optimizer="gauss-newton", settle=0.5)
+    space = FitSpace(torch.zeros(3, 3), torch.eye(2, 9), torch.ones(2), None)
+    with pytest.raises(StatfitError, match="settle brings UniformAdam"):
+        build(Settings("pca", 10, 0.1, settle=0.5), space, torch.zeros(3, 3))
+    assert build(Settings("statistical", 10, 0.1, settle=0.5), space, torch.zeros(3, 3))[1].settle == 0.5

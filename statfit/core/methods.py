@@ -57,7 +57,8 @@ def filtered_method(make_filter: Callable[[Settings, FitSpace, torch.Tensor], Fi
     (B, N, 3) for B fits at once (each with its own step scale)."""
     def build(settings: Settings, space: FitSpace, x0: torch.Tensor):
         param = FilteredVertices(x0, make_filter(settings, space, x0[0] if x0.dim() == 3 else x0))
-        return param, UniformAdam(param.parameters(), lr=settings.lr, betas=settings.adam_betas, fits=x0.dim() == 3)
+        return param, UniformAdam(param.parameters(), lr=settings.lr, betas=settings.adam_betas, fits=x0.dim() == 3,
+                                  steps=settings.iterations, settle=settings.settle)
 
     return build
 
@@ -93,7 +94,8 @@ def _pca(settings: Settings, space: FitSpace, x0: torch.Tensor):
 
 def _regularized(settings: Settings, space: FitSpace, x0: torch.Tensor):
     param = RegularizedVertices(x0, space.mean, space.basis_t, settings.beta)
-    return param, UniformAdam(param.parameters(), lr=settings.lr, betas=settings.adam_betas)
+    return param, UniformAdam(param.parameters(), lr=settings.lr, betas=settings.adam_betas,
+                              steps=settings.iterations, settle=settings.settle)
 
 
 def _none(settings: Settings, space: FitSpace, x0: torch.Tensor):
@@ -145,7 +147,9 @@ for _method in (
     Method("laplacian", filtered_method(laplacian_filter), needs_model=False,
            summary="x = x0 + (I + λL)⁻¹ u (Nicolet et al. 2021)",
            paper=Settings("laplacian", 500, 0.01, lam=19.0),
-           tuned={"register": Settings("laplacian", 1000, 0.1, lam=300.0),
+           # register's: also the default's fallback refit; its step settles over the last half, so a
+           # nudge of the scan no scanner could see no longer sends the fit elsewhere (docs/studies.md §30)
+           tuned={"register": Settings("laplacian", 1000, 0.1, lam=300.0, settle=0.5),
                   "render": Settings("laplacian", 3000, 0.003, lam=19.0),
                   "inpaint": Settings("laplacian", 300, 0.01, lam=19.0),
                   "splat": Settings("laplacian", SPLAT_ITERATIONS, 0.003, lam=19.0)}),
@@ -326,5 +330,9 @@ def build(settings: Settings, space: FitSpace, x0: torch.Tensor) -> tuple[Parame
     load_plugins()
     if settings.method not in METHODS:
         raise StatfitError(f"unknown method {settings.method!r}; choose one of {', '.join(METHODS)}")
-    return METHODS[settings.method].build(settings, space, x0)
+    param, optimizer = METHODS[settings.method].build(settings, space, x0)
+    if settings.settle and not isinstance(optimizer, UniformAdam):
+        raise StatfitError(f"settle brings UniformAdam's step size down; {settings.method!r} steps with "
+                           f"{type(optimizer).__name__}")
+    return param, optimizer
 

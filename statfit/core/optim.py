@@ -1,6 +1,7 @@
 """UniformAdam (Nicolet et al. 2021): Adam whose step is divided by the square root of the
 *largest* bias-corrected second moment instead of each entry's own, so the step direction
-is the filtered gradient's direction (per-entry scaling would undo the filter).
+is the filtered gradient's direction (per-entry scaling would undo the filter). Its step size may
+settle: fall linearly to 0 over the last share of a known number of steps.
 
 :func:`make_capturable` turns an optimiser's step count into a tensor on its parameters' device, so
 the step can be captured in a CUDA graph (its bias corrections then change on every replay)."""
@@ -15,11 +16,14 @@ class UniformAdam(torch.optim.Optimizer):
     ``capturable``: the step count t is a tensor on the parameter's device and the bias corrections
     are computed there (a few more, tiny ops; no value of t is baked into the launched kernels).
     ``fits``: a parameter's first dimension indexes independent fits (B, ...): each takes its own
-    largest second moment, so each steps as it would alone."""
+    largest second moment, so each steps as it would alone. ``settle`` s > 0 with ``steps`` T: the
+    step size at step t (1 … T) is lr · min(1, (T − t) / (s (T − 1))), held until the last share s
+    of the steps, then falling linearly to 0 at the last."""
 
     def __init__(self, params, lr: float = 0.01, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8,
-                 capturable: bool = False, fits: bool = False):
+                 capturable: bool = False, fits: bool = False, steps: int = 1, settle: float = 0.0):
         super().__init__(params, dict(lr=lr, betas=betas, eps=eps, capturable=capturable, fits=fits))
+        self.steps, self.settle = steps, settle
 
     @torch.no_grad()
     def step(self, closure=None):
@@ -40,12 +44,19 @@ class UniformAdam(torch.optim.Optimizer):
                 if group["capturable"]:
                     t = _step_tensor(state, p).add_(1)
                     denom = (largest / (1 - b2 ** t)).sqrt_().add_(group["eps"])
-                    p.sub_(m.mul(group["lr"] / (1 - b1 ** t)).div_(denom))
+                    size = group["lr"] / (1 - b1 ** t)
+                    p.sub_(m.mul(size * self._share(t) if self.settle else size).div_(denom))
                     continue
                 state["step"] += 1
                 t = state["step"]
                 denom = (largest / (1 - b2**t)).sqrt_().add_(group["eps"])
-                p.sub_(m / denom, alpha=group["lr"] / (1 - b1**t))
+                size = group["lr"] / (1 - b1**t)
+                p.sub_(m / denom, alpha=size * float(self._share(t)) if self.settle else size)
+
+    def _share(self, t):
+        """The settling share of the step size at step ``t`` (a number, or a tensor on the device)."""
+        share = (self.steps - t) / (self.settle * max(self.steps - 1, 1))
+        return share.clamp(0.0, 1.0) if isinstance(share, torch.Tensor) else min(max(share, 0.0), 1.0)
 
 
 # The optimisers whose steps :func:`make_capturable` can switch to a device-side step count.

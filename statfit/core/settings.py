@@ -39,6 +39,9 @@ class Settings:
     levels). ``prior``: with Adam on pca's coefficients c (in standard deviations), the weight w of
     a Gaussian prior term w · mean(c²) (0: none). ``landmarks`` False: the stage does not fit a
     landmark term (the landmarks, if given, still place the start and the other stages).
+    ``settle``: with UniformAdam, the share of the stage's last iterations over which the step size
+    falls linearly to 0 (0: constant, the paper's), so the fit comes to rest instead of ending
+    wherever its last step took it (docs/studies.md §30).
     Out-of-range values raise StatfitError naming the setting.
     """
 
@@ -57,6 +60,7 @@ class Settings:
     levels: int = 5
     prior: float = 0.0
     landmarks: bool = True
+    settle: float = 0.0
 
     def __post_init__(self) -> None:
         check_int("iterations", self.iterations, 1, MAX_ITERATIONS)
@@ -82,6 +86,9 @@ class Settings:
             raise StatfitError(f"unknown Laplacian {self.laplacian!r}; choose one of {', '.join(LAPLACIANS)}")
         if self.solver not in SOLVERS:
             raise StatfitError(f"unknown solver {self.solver!r}; choose one of {', '.join(SOLVERS)}")
+        _check_number("settle", self.settle, high=1.0)
+        if self.settle and self.optimizer != "adam":
+            raise StatfitError("settle brings an Adam stage's step size down; the Gauss–Newton stage has none")
         if len(self.adam_betas) != 2 or not all(0 <= b < 1 for b in self.adam_betas):
             raise StatfitError(f"adam_betas must be two numbers in [0, 1), got {self.adam_betas}")
 

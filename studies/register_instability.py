@@ -1,0 +1,323 @@
+"""Where a registration's held-out guess is decided by nothing (docs/studies.md §30, after §29): every
+third of §19's 72 cross-family held-out-half cases, each fitted with `register`'s default as given
+and with its seen points nudged by 1e-4 mm (§29's nudge), under:
+
+- ``shipped``: the default as it ships; the nudged case is also fitted with the pre-alignment of the
+  fit as given forced on it (``forced``), which leaves only the fit after the pose to part the paths;
+- ``constant``: the same with every step size constant (the default before §30: its fallback's
+  ``laplacian`` refit did not settle), and its ``forced`` too;
+- ``taper`` (at constant steps): the data term's 5% trim as a taper (weight 1 up to 3/4 of the
+  trim's cut, linearly to 0 at the cut), in the pose search and the fit: the hard cut made smooth;
+- ``fixed-levels`` (at constant steps): the closed-form stage's continuation run on a fixed schedule
+  (6 Gauss–Newton steps per prior level, 12 at the last) instead of "until the data term improves by
+  < 0.1%";
+- ``settle``: every Adam stage's step size held for the first half of its iterations, then brought
+  down linearly to 0 at its last (what ships does this for the ``laplacian`` stages alone);
+- ``settle-polish``: what ships, and the pose search's polish (Gauss–Newton on the pose and every
+  mode, POLISH_ITERATIONS steps) taking each of its last half's steps shortened the same way.
+
+``--landmark-pose`` runs the probe of the pose polished with the landmarks as a term (one case, three
+weights, the term on the pose and modes or on the pose alone) and prints what it does to the pose.
+
+    python studies/register_instability.py                  # ~30 min on 2 cores
+    python studies/register_instability.py --report
+    python studies/register_instability.py --landmark-pose  # ~10 s
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import math
+import sys
+import time
+from pathlib import Path
+from unittest import mock
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import cross_family_landmarks as protocol  # noqa: E402
+from families import LANDMARKED  # noqa: E402
+from register_sensitivity import NUDGE_MM  # noqa: E402
+from study_runs import run_or_report  # noqa: E402
+
+RESULTS = ROOT / "studies" / "results" / "register_instability.json"
+VARIANTS = ("shipped", "constant", "taper", "fixed-levels", "settle", "settle-polish")
+TAPER = 0.25          # the taper's width, as a share of the trim's cut
+PER_LEVEL, LAST_LEVEL = 6, 12
+
+
+def tapered_refresh(refresh):
+    """ScanObjective.refresh with the quantile trim replaced by a taper; the residuals, Jacobians and
+    value then weigh each point by it (rows scaled by √(w·M'/Σw), so a mean over the rows is Σ w r² / Σ w)."""
+    from statfit.objectives.scan import masked_quantile
+
+    def tapered(self, vertices):
+        trim, self.trim = self.trim, 0.0
+        try:
+            attachment = refresh(self, vertices)          # the border, region and clutter rules only
+        finally:
+            self.trim = trim
+        dist, counted = attachment.distance, self._keep
+        weights = counted.to(dist.dtype)
+        if trim > 0:
+            cut = masked_quantile(dist, counted, 1.0 - trim)
+            weights = weights * (cut - dist).div(TAPER * cut).clamp(0, 1)
+        self._keep, total = weights > 0, weights.sum()
+        self._mean_weights, self._grad_weights = (weights / total).view(-1, 1, 1), (2 * weights / total).view(-1, 1, 1)
+        self._row_scale = (weights[self._keep] * self._keep.sum() / total).sqrt()
+        return attachment
+    return tapered
+
+
+def taper_patches() -> list:
+    import torch
+
+    from statfit.objectives.scan import ScanObjective, _PointToSurface
+
+    residuals, jacobian, pose_jacobian = ScanObjective.residuals, ScanObjective.jacobian, ScanObjective.pose_jacobian
+
+    def value(self, vertices):
+        if vertices.requires_grad and torch.is_grad_enabled():
+            return {"data": _PointToSurface.apply(vertices, self)}
+        squared = (self.points - self._attached(vertices)).square().sum(dim=1)
+        return {"data": (squared * self._mean_weights.view(-1)).sum()}
+
+    return [mock.patch.object(ScanObjective, "refresh", tapered_refresh(ScanObjective.refresh)),
+            mock.patch.object(ScanObjective, "residuals", lambda self, v: residuals(self, v) * self._row_scale),
+            mock.patch.object(ScanObjective, "jacobian", lambda self, d: jacobian(self, d) * self._row_scale[:, None]),
+            mock.patch.object(ScanObjective, "pose_jacobian",
+                              lambda self, c: pose_jacobian(self, c) * self._row_scale[:, None]),
+            mock.patch.object(ScanObjective, "__call__", value)]
+
+
+def fixed_levels(mean, basis_t, std, objective, x0, iterations, noise, levels=5, tolerance=None, first_iteration=0,
+                 on_record=None, on_snapshot=None):
+    """fit_coefficients with PER_LEVEL steps per prior level and LAST_LEVEL at the last, whatever the
+    data term does (the shipped stage moves on when it improves by less than 0.1%)."""
+    import torch
+
+    from statfit.core.gauss_newton import SINGULAR_GUARD, CoefficientFit, mode_directions
+
+    started = time.perf_counter()
+    directions = mode_directions(basis_t, std).contiguous()
+    coefficients = (torch.mv(basis_t, (x0 - mean).reshape(-1)) / std).double()
+    eye = torch.eye(len(std), dtype=torch.float64)
+    schedule = [noise * math.sqrt(10.0) ** level for level in reversed(range(max(1, levels)))]
+    for step, sigma in enumerate([s for s in schedule[:-1] for _ in range(PER_LEVEL)] + [schedule[-1]] * LAST_LEVEL):
+        x = mean + directions @ coefficients.to(mean.dtype)
+        objective.refresh(x)
+        r = objective.residuals(x).double()
+        count = max(r.numel(), 1)
+        if on_snapshot:
+            on_snapshot(first_iteration + step, x)
+        jac = objective.jacobian(directions).double()
+        lhs = jac.T @ jac / count
+        lhs = lhs + (sigma**2 / count + SINGULAR_GUARD * float(lhs.diagonal().mean())) * eye
+        coefficients = coefficients - torch.linalg.solve(lhs, jac.T @ r / count + sigma**2 / count * coefficients)
+    x = mean + directions @ coefficients.to(mean.dtype)
+    return CoefficientFit(x, coefficients, {"data": float(objective(x)["data"])}, step + 1,
+                          time.perf_counter() - started)
+
+
+def settling(run_fit):
+    """run_fit whose optimiser's step size is held for the first half of the stage's iterations, then
+    brought down linearly to 0 at its last (a stage that settles itself left as it is)."""
+    def settled(param, optimizer, objective, iterations, **kwargs):
+        if getattr(optimizer, "settle", 0.0):
+            return run_fit(param, optimizer, objective, iterations, **kwargs)
+        sizes, step, taken = [group["lr"] for group in optimizer.param_groups], optimizer.step, [0]
+
+        def scheduled(*args, **kw):
+            share = min(1.0, 2.0 * (1.0 - taken[0] / max(iterations - 1, 1)))
+            for group, size in zip(optimizer.param_groups, sizes):
+                group["lr"] = size * share
+            taken[0] += 1
+            return step(*args, **kw)
+        optimizer.step = scheduled
+        return run_fit(param, optimizer, objective, iterations, **kwargs)
+    return settled
+
+
+def settled_polish(polish):
+    """polish_pose whose Gauss–Newton steps are shortened by the settling share (the solve's result
+    scaled: the polish's only solve)."""
+    import torch
+
+    from statfit.registration.pose.refinement import POLISH_ITERATIONS
+
+    solve = torch.linalg.solve
+
+    def polished(*args, **kwargs):
+        taken = [0]
+
+        def shortened(lhs, rhs):
+            taken[0] += 1
+            return solve(lhs, rhs) * min(1.0, (POLISH_ITERATIONS - taken[0] + 1) / (0.5 * POLISH_ITERATIONS))
+        with mock.patch.object(torch.linalg, "solve", shortened):
+            return polish(*args, **kwargs)
+    return polished
+
+
+def patches(variant: str) -> list:
+    import statfit.core.stages as stages
+    import statfit.registration.pose.search as search
+    from statfit.core.optim import UniformAdam
+
+    constant = [mock.patch.object(UniformAdam, "_share", lambda self, t: 1.0)]
+    return {"shipped": [], "constant": constant, "taper": constant + taper_patches(),
+            "fixed-levels": constant + [mock.patch.object(stages, "fit_coefficients", fixed_levels)],
+            "settle": [mock.patch.object(stages, "run_fit", settling(stages.run_fit))],
+            "settle-polish": [mock.patch.object(search, "polish_pose", settled_polish(search.polish_pose))]}[variant]
+
+
+def fit(people: str, model_family: str, seed: int, half: str, variant: str) -> dict:
+    """One case under ``variant``: ``held`` as given, ``nudged``, and (shipped) ``forced``, the nudged
+    fit with the given fit's pre-alignment."""
+    import warnings
+
+    import statfit
+    import statfit.registration.posed as posed
+    from adaptive_choice import single_threaded
+    from cross_family import inside_distance
+    from families import landmarked_model
+    from statfit.structures.scan import Scan
+
+    single_threaded()
+    warnings.simplefilter("ignore")
+    data, model = protocol.case_data(people, seed, half), landmarked_model(model_family)
+    searched = posed.prealign
+
+    def held(nudge: float, pose=None) -> tuple[float, tuple, bool]:
+        points = data["seen"].points + np.random.default_rng(1).standard_normal(data["seen"].points.shape) * nudge
+        found = {}
+
+        def prealign(*args, **kwargs):
+            found["pose"] = searched(*args, **kwargs) if pose is None else pose
+            return found["pose"]
+        with contextlib.ExitStack() as stack:
+            for patch in [mock.patch.object(posed, "prealign", prealign), *patches(variant)]:
+                stack.enter_context(patch)
+            result = statfit.register(model, Scan(points, data["seen"].normals), "default",
+                                      landmarks=data["landmarks"], threads=1)
+        error = float(np.nanmean(inside_distance(data["held"], result.vertices, model.faces)))
+        return error, found["pose"], bool(result.fallback and result.fallback["used"])
+
+    given, pose, fell_back = held(0.0)
+    nudged, _, nudged_fell_back = held(NUDGE_MM)
+    row = {"people": people, "model": model_family, "seed": seed, "half": half, "variant": variant,
+           "held": given, "nudged": nudged, "fell_back": [fell_back, nudged_fell_back]}
+    return row | ({"forced": held(NUDGE_MM, pose)[0]} if variant in ("shipped", "constant") else {})
+
+
+def runs() -> list[tuple]:
+    from families import build_all, landmarked_model
+
+    build_all(list(LANDMARKED), 2)
+    for family in LANDMARKED:
+        landmarked_model(family)
+    cases = [(p, m, s, h) for p in LANDMARKED for m in LANDMARKED for s in range(2) for h in protocol.HALVES][::3]
+    return [case + (variant,) for variant in VARIANTS for case in cases]
+
+
+def report(rows: list[dict]) -> str:
+    lines = ["| variant | cases | held, as given (mm) | held, nudged (mm) | mean \\|nudged ÷ given − 1\\| | "
+             "moved by > 10% | fell back (given) |", "|---|---|---|---|---|---|---|"]
+    for variant in VARIANTS:
+        own = [r for r in rows if r["variant"] == variant]
+        if not own:
+            continue
+        given, nudged = np.array([r["held"] for r in own]), np.array([r["nudged"] for r in own])
+        moved = np.abs(nudged / given - 1)
+        lines.append(f"| {variant} | {len(own)} | {given.mean():.3f} | {nudged.mean():.3f} | {moved.mean():.3f} | "
+                     f"{int((moved > 0.1).sum())} | {sum(r['fell_back'][0] for r in own)} |")
+        if variant in ("shipped", "constant"):
+            forced = np.abs(np.array([r["forced"] for r in own]) / given - 1)
+            lines.append(f"| {variant}, nudged with the given pose | {len(own)} | {given.mean():.3f} | "
+                         f"{np.mean([r['forced'] for r in own]):.3f} | {forced.mean():.3f} | "
+                         f"{int((forced > 0.1).sum())} | |")
+    return "\n".join(lines)
+
+
+def landmark_pose_probe() -> None:
+    """The pose polished with the landmarks as a Gauss–Newton term (robust, weight w per landmark
+    against the scan's mean, as the fit weighs them), on the modes and the pose or on the pose alone:
+    what it does to the landmarks it was given and to the held-out ones (ICT people, ICT's model,
+    seed 0, left half). The landmarks ride along as the polish's last points, so they move with its
+    pose; the scan term leaves them out and the landmark rows pull them to their model vertices."""
+    import torch
+
+    import statfit.registration.pose.refinement as refinement
+    import statfit.registration.pose.search as search
+    from adaptive_choice import single_threaded
+    from families import landmarked_model
+    from statfit.objectives.landmarks import ROBUST_SCALE
+    from statfit.registration.prealign import landmark_alignment
+    from statfit.structures.frame import Frame
+
+    single_threaded()
+    data, model = protocol.case_data("ict", 0, "left"), landmarked_model("ict")
+    given = np.isfinite(data["landmarks"]).all(axis=1)
+    vertices, count = model.landmarks[given], int(given.sum())
+    start = landmark_alignment(model, data["landmarks"])
+    centroid, frame = data["seen"].points.mean(axis=0), Frame.of(model.template)
+    units = float(10.0 ** np.round(np.log10(start.scale)))
+    targets = (data["landmarks"][given] - centroid) / (units * frame.scale)
+    polish = search.polish_pose
+    for weight, pose_only in ((0.0, False), (1.0, False), (10.0, False), (1.0, True), (10.0, True)):
+
+        class PulledScan(refinement.ScanObjective):
+            """The polish's scan term on all but the last ``count`` points, plus their landmark rows."""
+
+            def refresh(self, x):
+                attachment = super().refresh(x)
+                self._keep[-count:] = False
+                offset = self.points[-count:] - x[vertices]
+                irls = ROBUST_SCALE**4 / (ROBUST_SCALE**2 + offset.square().sum(dim=1)).square()
+                self.factor = (weight * int(self._keep.sum()) / count * irls).sqrt()[:, None]
+                return attachment
+
+            def residuals(self, x):
+                offset = self.points[-count:] - x[vertices]
+                return torch.cat([super().residuals(x), (self.factor * offset).reshape(-1)])
+
+            def jacobian(self, directions):
+                pulled = -(self.factor[:, :, None] * directions[vertices]).reshape(-1, directions.shape[-1])
+                return torch.cat([super().jacobian(directions), torch.zeros_like(pulled) if pose_only else pulled])
+
+            def pose_jacobian(self, centre):
+                arm = self.points[-count:] - centre
+                turn = torch.linalg.cross(torch.eye(3, dtype=arm.dtype)[None], arm[:, None, :].expand(-1, 3, 3))
+                moved = torch.cat([turn.transpose(1, 2), torch.eye(3, dtype=arm.dtype).expand(count, 3, 3),
+                                   torch.zeros(count, 3, 1, dtype=arm.dtype)], dim=2)
+                return torch.cat([super().pose_jacobian(centre), (self.factor[:, :, None] * moved).reshape(-1, 7)])
+
+        def with_landmarks(matcher, mean, directions, points, normals, pose, **kwargs):
+            return polish(matcher, mean, directions, np.vstack([points, targets]),
+                          np.vstack([normals, np.tile([0.0, 0.0, 1.0], (count, 1))]), pose, **kwargs)
+
+        with mock.patch.object(refinement, "ScanObjective", PulledScan), \
+                mock.patch.object(search, "polish_pose", with_landmarks):
+            estimate = search.refine_pose(model, data["seen"], start)
+        shape = model.template + (model.basis @ (estimate.coefficients * model.std)).reshape(-1, 3)
+        placed = estimate.transform.apply(shape)
+        seen = np.linalg.norm(placed[vertices] - data["landmarks"][given], axis=1).mean()
+        held_out = data["held_landmarks"]
+        held = np.linalg.norm(placed[model.landmarks[held_out]] - data["truth"][held_out], axis=1).mean()
+        print(f"weight {weight:g}{' on the pose alone' if pose_only else ''}: given landmarks {seen:.2f} mm, "
+              f"held-out landmarks {held:.2f} mm, coefficients' RMS {np.sqrt(np.mean(estimate.coefficients ** 2)):.2f}")
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--report", action="store_true", help="only print the table of the stored rows")
+    parser.add_argument("--landmark-pose", action="store_true", help="run the landmark-pose probe and print it")
+    args = parser.parse_args()
+    if args.landmark_pose:
+        landmark_pose_probe()
+    else:
+        run_or_report(fit, [] if args.report else runs(), RESULTS, report, args.report,
+                      key=lambda r: (r["people"], r["model"], r["seed"], r["half"], r["variant"]))
