@@ -14,13 +14,20 @@ and with its seen points nudged by 1e-4 mm (§29's nudge), under:
 - ``settle``: every Adam stage's step size held for the first half of its iterations, then brought
   down linearly to 0 at its last (what ships does this for the ``laplacian`` stages alone);
 - ``settle-polish``: what ships, and the pose search's polish (Gauss–Newton on the pose and every
-  mode, POLISH_ITERATIONS steps) taking each of its last half's steps shortened the same way.
+  mode, POLISH_ITERATIONS steps) taking each of its last half's steps shortened the same way;
+- ``polish-taper``: what ships, with the polish's hard cuts as tapers centred on them: the clutter
+  rules' (distance: 3 robust deviations, ±25%; normals: |cos| 0.5, ±0.1) and the trim's (±25%).
+
+``--accuracy`` refits §23's cross-family sets (§19: 72 half faces with landmarks; §17: 53 half scans
+without) with the ``constant`` variant, and sets them beside the shipped default's rows of
+studies/default_fallback.py (which must have run): what settling costs or gains in accuracy.
 
 ``--landmark-pose`` runs the probe of the pose polished with the landmarks as a term (one case, three
 weights, the term on the pose and modes or on the pose alone) and prints what it does to the pose.
 
     python studies/register_instability.py                  # ~30 min on 2 cores
     python studies/register_instability.py --report
+    python studies/register_instability.py --accuracy       # ~5 min on 2 cores
     python studies/register_instability.py --landmark-pose  # ~10 s
 """
 from __future__ import annotations
@@ -45,7 +52,9 @@ from register_sensitivity import NUDGE_MM  # noqa: E402
 from study_runs import run_or_report  # noqa: E402
 
 RESULTS = ROOT / "studies" / "results" / "register_instability.json"
-VARIANTS = ("shipped", "constant", "taper", "fixed-levels", "settle", "settle-polish")
+ACCURACY = ROOT / "studies" / "results" / "register_instability_accuracy.json"
+SHIPPED = ROOT / "studies" / "results" / "default_fallback.json"
+VARIANTS = ("shipped", "constant", "taper", "fixed-levels", "settle", "settle-polish", "polish-taper")
 TAPER = 0.25          # the taper's width, as a share of the trim's cut
 PER_LEVEL, LAST_LEVEL = 6, 12
 
@@ -92,6 +101,50 @@ def taper_patches() -> list:
             mock.patch.object(ScanObjective, "pose_jacobian",
                               lambda self, c: pose_jacobian(self, c) * self._row_scale[:, None]),
             mock.patch.object(ScanObjective, "__call__", value)]
+
+
+def polish_taper():
+    """The polish's ScanObjective with its clutter rules and trim as tapers centred on their cuts."""
+    from statfit.objectives import scan
+    from statfit.registration.pose import refinement
+
+    def above(value, cut, width):
+        """1 from (1 + width) · cut up, 0 from (1 − width) · cut down, linear between."""
+        return ((value - cut) / (2 * width * cut) + 0.5).clamp(0, 1)
+
+    class Tapered(refinement.ScanObjective):
+        def refresh(self, vertices):
+            clutter, trim, self.clutter, self.trim = self.clutter, self.trim, False, 0.0
+            try:
+                attachment = super().refresh(vertices)       # the border and region rules only
+            finally:
+                self.clutter, self.trim = clutter, trim
+            dist, base = attachment.distance, self._keep
+            weights = base.to(dist.dtype)
+            if clutter and self.scan_normals is not None:
+                cosine = (self.normals * self.scan_normals).sum(dim=-1).abs()
+                median = scan.masked_median(dist, base & (cosine >= scan.NORMAL_COSINE)).double()
+                cut = (scan.OUTLIER_SIGMAS * 1.4826 * median).clamp_min(scan.FLOOR).to(dist.dtype)
+                weights = weights * above(cosine, scan.NORMAL_COSINE, 0.2) * (1 - above(dist, cut, 0.25))
+            if trim > 0:
+                cut = scan.masked_quantile(dist, weights > 0, 1.0 - trim)
+                weights = weights * (1 - above(dist, cut, 0.25))
+            self._keep, total = weights > 0, weights.sum()
+            self._mean_weights = (weights / total).view(-1, 1, 1)
+            self._grad_weights = (2 * weights / total).view(-1, 1, 1)
+            self._row_scale = (weights[self._keep] * self._keep.sum() / total).sqrt()
+            return attachment
+
+        def residuals(self, x):
+            return super().residuals(x) * self._row_scale
+
+        def jacobian(self, directions):
+            return super().jacobian(directions) * self._row_scale[:, None]
+
+        def pose_jacobian(self, centre):
+            return super().pose_jacobian(centre) * self._row_scale[:, None]
+
+    return [mock.patch.object(refinement, "ScanObjective", Tapered)]
 
 
 def fixed_levels(mean, basis_t, std, objective, x0, iterations, noise, levels=5, tolerance=None, first_iteration=0,
@@ -171,7 +224,8 @@ def patches(variant: str) -> list:
     return {"shipped": [], "constant": constant, "taper": constant + taper_patches(),
             "fixed-levels": constant + [mock.patch.object(stages, "fit_coefficients", fixed_levels)],
             "settle": [mock.patch.object(stages, "run_fit", settling(stages.run_fit))],
-            "settle-polish": [mock.patch.object(search, "polish_pose", settled_polish(search.polish_pose))]}[variant]
+            "settle-polish": [mock.patch.object(search, "polish_pose", settled_polish(search.polish_pose))],
+            "polish-taper": polish_taper()}[variant]
 
 
 def fit(people: str, model_family: str, seed: int, half: str, variant: str) -> dict:
@@ -239,6 +293,41 @@ def report(rows: list[dict]) -> str:
             lines.append(f"| {variant}, nudged with the given pose | {len(own)} | {given.mean():.3f} | "
                          f"{np.mean([r['forced'] for r in own]):.3f} | {forced.mean():.3f} | "
                          f"{int((forced > 0.1).sum())} | |")
+    return "\n".join(lines)
+
+
+def constant_case(name: str, *key) -> dict:
+    """default_fallback's case ``key`` of set ``name`` (§19 or §17), fitted with every step constant."""
+    from default_fallback import run_case
+
+    with contextlib.ExitStack() as stack:
+        for patch in patches("constant"):
+            stack.enter_context(patch)
+        return run_case(name, *key)
+
+
+def accuracy_runs() -> list[tuple]:
+    import json
+
+    return [(r["set"], r["people"], r["model"], r["seed"], r["half"]) for r in json.loads(SHIPPED.read_text())
+            if r["set"] in ("§19", "§17") and "held" in r]
+
+
+def accuracy_report(rows: list[dict]) -> str:
+    import json
+
+    key = lambda r: (r["set"], r["people"], r["model"], r["seed"], r["half"])  # noqa: E731
+    shipped = {key(r): r for r in json.loads(SHIPPED.read_text()) if r["set"] in ("§19", "§17") and "held" in r}
+    lines = ["| set | cases | held, constant (mm) | held, shipped (mm) | where the fallback fired: cases, constant, "
+             "shipped | elsewhere: identical |", "|---|---|---|---|---|---|"]
+    for name in ("§19", "§17"):
+        both = [(r, shipped[key(r)]) for r in rows if r["set"] == name and key(r) in shipped and "held" in r]
+        fired = [(a, b) for a, b in both if b.get("fallback") and b["fallback"]["used"]]
+        rest = [(a, b) for a, b in both if (a, b) not in fired]
+        lines.append(f"| {name} | {len(both)} | {np.mean([a['held'] for a, _ in both]):.3f} | "
+                     f"{np.mean([b['held'] for _, b in both]):.3f} | {len(fired)}, "
+                     f"{np.mean([a['held'] for a, _ in fired]):.3f}, {np.mean([b['held'] for _, b in fired]):.3f} | "
+                     f"{sum(a['held'] == b['held'] for a, b in rest)} of {len(rest)} |")
     return "\n".join(lines)
 
 
@@ -315,9 +404,13 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--report", action="store_true", help="only print the table of the stored rows")
     parser.add_argument("--landmark-pose", action="store_true", help="run the landmark-pose probe and print it")
+    parser.add_argument("--accuracy", action="store_true", help="§23's cross-family sets at constant steps")
     args = parser.parse_args()
     if args.landmark_pose:
         landmark_pose_probe()
+    elif args.accuracy:
+        run_or_report(constant_case, [] if args.report else accuracy_runs(), ACCURACY, accuracy_report, args.report,
+                      key=lambda r: (r["set"], r["people"], r["model"], r["seed"], r["half"]))
     else:
         run_or_report(fit, [] if args.report else runs(), RESULTS, report, args.report,
                       key=lambda r: (r["people"], r["model"], r["seed"], r["half"], r["variant"]))
