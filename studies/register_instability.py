@@ -4,8 +4,7 @@ and with its seen points nudged by 1e-4 mm (§29's nudge), under:
 
 - ``shipped``: the default as it ships; the nudged case is also fitted with the pre-alignment of the
   fit as given forced on it (``forced``), which leaves only the fit after the pose to part the paths;
-- ``constant``: the same with every step size constant (the default before §30: its fallback's
-  ``laplacian`` refit did not settle), and its ``forced`` too;
+- ``constant``: the default before §30 (every step size constant), and its ``forced`` too;
 - ``taper`` (at constant steps): the data term's 5% trim as a taper (weight 1 up to 3/4 of the
   trim's cut, linearly to 0 at the cut), in the pose search and the fit: the hard cut made smooth;
 - ``fixed-levels`` (at constant steps): the closed-form stage's continuation run on a fixed schedule
@@ -13,21 +12,27 @@ and with its seen points nudged by 1e-4 mm (§29's nudge), under:
   < 0.1%";
 - ``settle``: every Adam stage's step size held for the first half of its iterations, then brought
   down linearly to 0 at its last (what ships does this for the ``laplacian`` stages alone);
-- ``settle-polish``: what ships, and the pose search's polish (Gauss–Newton on the pose and every
-  mode, POLISH_ITERATIONS steps) taking each of its last half's steps shortened the same way;
-- ``polish-taper``: what ships, with the polish's hard cuts as tapers centred on them: the clutter
-  rules' (distance: 3 robust deviations, ±25%; normals: |cos| 0.5, ±0.1) and the trim's (±25%).
+- ``settle-polish``, ``polish-taper`` (as shipped): the pose search's polish (Gauss–Newton on the
+  pose and every mode, POLISH_ITERATIONS steps) taking each of its last half's steps shortened the
+  same way; or with its hard cuts as tapers centred on them: the clutter rules' (distance: 3 robust
+  deviations, ±25%; normals: |cos| 0.5, ±0.1) and the trim's (±25%);
+- ``edge-normals`` (as shipped, and its ``forced``): a point-to-plane residual whose scan point is
+  closest to an edge or a vertex of the surface (where two or more triangles tie, and which one the
+  closest-point query returns is a coin a nudge flips) takes the direction from that closest point
+  to the scan point, signed as the attached triangle's normal, instead of that triangle's normal;
+  in every Gauss–Newton solve (the pose's polish, the closed form, the hair test).
 
-``--accuracy`` refits §23's cross-family sets (§19: 72 half faces with landmarks; §17: 53 half scans
-without) with the ``constant`` variant, and sets them beside the shipped default's rows of
-studies/default_fallback.py (which must have run): what settling costs or gains in accuracy.
+``--accuracy VARIANT`` refits the cases of studies/default_fallback.py (§23's sets: §15, §12, §9, §8
+in family; §19, §17 across families) under ``constant`` or ``edge-normals``, and sets them beside the
+shipped default's rows there (which must have run with the code as shipped).
 
 ``--landmark-pose`` runs the probe of the pose polished with the landmarks as a term (one case, three
 weights, the term on the pose and modes or on the pose alone) and prints what it does to the pose.
 
     python studies/register_instability.py                  # ~30 min on 2 cores
     python studies/register_instability.py --report
-    python studies/register_instability.py --accuracy       # ~5 min on 2 cores
+    python studies/register_instability.py --accuracy constant       # §19 and §17 only: ~5 min on 2 cores
+    python studies/register_instability.py --accuracy edge-normals   # every set: ~8 min
     python studies/register_instability.py --landmark-pose  # ~10 s
 """
 from __future__ import annotations
@@ -54,7 +59,7 @@ from study_runs import run_or_report  # noqa: E402
 RESULTS = ROOT / "studies" / "results" / "register_instability.json"
 ACCURACY = ROOT / "studies" / "results" / "register_instability_accuracy.json"
 SHIPPED = ROOT / "studies" / "results" / "default_fallback.json"
-VARIANTS = ("shipped", "constant", "taper", "fixed-levels", "settle", "settle-polish", "polish-taper")
+VARIANTS = ("shipped", "constant", "taper", "fixed-levels", "settle", "settle-polish", "polish-taper", "edge-normals")
 TAPER = 0.25          # the taper's width, as a share of the trim's cut
 PER_LEVEL, LAST_LEVEL = 6, 12
 
@@ -147,6 +152,37 @@ def polish_taper():
     return [mock.patch.object(refinement, "ScanObjective", Tapered)]
 
 
+def edge_normals() -> list:
+    """ScanObjective's residuals, Jacobians and pose Jacobians with the offset's direction as the
+    normal where a scan point's closest surface point lies on an edge or a vertex."""
+    import torch
+
+    from statfit.objectives.scan import ON_EDGE, ScanObjective
+
+    def plane_normals(self) -> torch.Tensor:
+        faces = self.normals
+        offsets = self.points - self._attached(self._refreshed_at)
+        length = offsets.norm(dim=-1, keepdim=True)
+        direction = offsets / length.clamp_min(torch.finfo(offsets.dtype).tiny)
+        direction = torch.where((direction * faces).sum(dim=-1, keepdim=True) < 0, -direction, direction)
+        tied = (self.attachment.barycentric < ON_EDGE).any(dim=-1, keepdim=True) & (length > 1e-9)
+        return torch.where(tied, direction, faces)
+
+    def swapped(method):
+        """``method`` run with ``normals`` reading the residuals' normals."""
+        def run(self, *args):
+            faces = self.normals
+            self._normals = plane_normals(self)
+            try:
+                return method(self, *args)
+            finally:
+                self._normals = faces
+        return run
+
+    return [mock.patch.object(ScanObjective, name, swapped(getattr(ScanObjective, name)))
+            for name in ("residuals", "jacobian", "pose_jacobian")]
+
+
 def fixed_levels(mean, basis_t, std, objective, x0, iterations, noise, levels=5, tolerance=None, first_iteration=0,
                  on_record=None, on_snapshot=None):
     """fit_coefficients with PER_LEVEL steps per prior level and LAST_LEVEL at the last, whatever the
@@ -225,7 +261,7 @@ def patches(variant: str) -> list:
             "fixed-levels": constant + [mock.patch.object(stages, "fit_coefficients", fixed_levels)],
             "settle": [mock.patch.object(stages, "run_fit", settling(stages.run_fit))],
             "settle-polish": [mock.patch.object(search, "polish_pose", settled_polish(search.polish_pose))],
-            "polish-taper": polish_taper()}[variant]
+            "polish-taper": polish_taper(), "edge-normals": edge_normals()}[variant]
 
 
 def fit(people: str, model_family: str, seed: int, half: str, variant: str) -> dict:
@@ -264,7 +300,7 @@ def fit(people: str, model_family: str, seed: int, half: str, variant: str) -> d
     nudged, _, nudged_fell_back = held(NUDGE_MM)
     row = {"people": people, "model": model_family, "seed": seed, "half": half, "variant": variant,
            "held": given, "nudged": nudged, "fell_back": [fell_back, nudged_fell_back]}
-    return row | ({"forced": held(NUDGE_MM, pose)[0]} if variant in ("shipped", "constant") else {})
+    return row | ({"forced": held(NUDGE_MM, pose)[0]} if variant in ("shipped", "constant", "edge-normals") else {})
 
 
 def runs() -> list[tuple]:
@@ -288,7 +324,7 @@ def report(rows: list[dict]) -> str:
         moved = np.abs(nudged / given - 1)
         lines.append(f"| {variant} | {len(own)} | {given.mean():.3f} | {nudged.mean():.3f} | {moved.mean():.3f} | "
                      f"{int((moved > 0.1).sum())} | {sum(r['fell_back'][0] for r in own)} |")
-        if variant in ("shipped", "constant"):
+        if variant in ("shipped", "constant", "edge-normals"):
             forced = np.abs(np.array([r["forced"] for r in own]) / given - 1)
             lines.append(f"| {variant}, nudged with the given pose | {len(own)} | {given.mean():.3f} | "
                          f"{np.mean([r['forced'] for r in own]):.3f} | {forced.mean():.3f} | "
@@ -296,38 +332,48 @@ def report(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def constant_case(name: str, *key) -> dict:
-    """default_fallback's case ``key`` of set ``name`` (§19 or §17), fitted with every step constant."""
+def variant_case(variant: str, name: str, *key) -> dict:
+    """default_fallback's case ``key`` of set ``name`` fitted under ``variant``."""
     from default_fallback import run_case
 
     with contextlib.ExitStack() as stack:
-        for patch in patches("constant"):
+        for patch in patches(variant):
             stack.enter_context(patch)
-        return run_case(name, *key)
+        return {"variant": variant, **run_case(name, *key)}
 
 
-def accuracy_runs() -> list[tuple]:
+def accuracy_key(row: dict) -> tuple:
+    from default_fallback import row_key
+
+    return row_key(row)
+
+
+def accuracy_runs(variant: str) -> list[tuple]:
     import json
 
-    return [(r["set"], r["people"], r["model"], r["seed"], r["half"]) for r in json.loads(SHIPPED.read_text())
-            if r["set"] in ("§19", "§17") and "held" in r]
+    sets = ("§19", "§17") if variant == "constant" else ("§15", "§12", "§9", "§8", "§19", "§17")
+    return [(variant, *accuracy_key(r)) for r in json.loads(SHIPPED.read_text()) if r["set"] in sets]
 
 
 def accuracy_report(rows: list[dict]) -> str:
     import json
 
-    key = lambda r: (r["set"], r["people"], r["model"], r["seed"], r["half"])  # noqa: E731
-    shipped = {key(r): r for r in json.loads(SHIPPED.read_text()) if r["set"] in ("§19", "§17") and "held" in r}
-    lines = ["| set | cases | held, constant (mm) | held, shipped (mm) | where the fallback fired: cases, constant, "
-             "shipped | elsewhere: identical |", "|---|---|---|---|---|---|"]
-    for name in ("§19", "§17"):
-        both = [(r, shipped[key(r)]) for r in rows if r["set"] == name and key(r) in shipped and "held" in r]
-        fired = [(a, b) for a, b in both if b.get("fallback") and b["fallback"]["used"]]
-        rest = [(a, b) for a, b in both if (a, b) not in fired]
-        lines.append(f"| {name} | {len(both)} | {np.mean([a['held'] for a, _ in both]):.3f} | "
-                     f"{np.mean([b['held'] for _, b in both]):.3f} | {len(fired)}, "
-                     f"{np.mean([a['held'] for a, _ in fired]):.3f}, {np.mean([b['held'] for _, b in fired]):.3f} | "
-                     f"{sum(a['held'] == b['held'] for a, b in rest)} of {len(rest)} |")
+    from default_fallback import ERROR
+
+    shipped = {accuracy_key(r): r for r in json.loads(SHIPPED.read_text())}
+    lines = ["| variant | set | cases | variant's error | shipped | ratio | fallback fired (shipped / variant) |",
+             "|---|---|---|---|---|---|---|"]
+    for variant in ("constant", "edge-normals"):
+        for name, error in (*ERROR.items(), ("§8", "face_mm_0.0"), ("§8", "face_mm_0.5")):
+            both = [(r, shipped[accuracy_key(r)]) for r in rows if r["variant"] == variant and r["set"] == name
+                    and accuracy_key(r) in shipped and error in r and error in shipped[accuracy_key(r)]]
+            if not both:
+                continue
+            fired = [sum(bool(x.get("fallback") and x["fallback"]["used"]) for x in side) for side in zip(*both)]
+            mine, theirs = np.mean([a[error] for a, _ in both]), np.mean([b[error] for _, b in both])
+            label = f"{name}, clutter {error[8:]}" if name == "§8" else name
+            lines.append(f"| {variant} | {label} | {len(both)} | {mine:.4g} | {theirs:.4g} | {mine / theirs:.3f} | "
+                         f"{fired[1]} / {fired[0]} |")
     return "\n".join(lines)
 
 
@@ -404,13 +450,14 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--report", action="store_true", help="only print the table of the stored rows")
     parser.add_argument("--landmark-pose", action="store_true", help="run the landmark-pose probe and print it")
-    parser.add_argument("--accuracy", action="store_true", help="§23's cross-family sets at constant steps")
+    parser.add_argument("--accuracy", choices=("constant", "edge-normals"),
+                        help="refit §23's sets (default_fallback.py's) under this variant")
     args = parser.parse_args()
     if args.landmark_pose:
         landmark_pose_probe()
     elif args.accuracy:
-        run_or_report(constant_case, [] if args.report else accuracy_runs(), ACCURACY, accuracy_report, args.report,
-                      key=lambda r: (r["set"], r["people"], r["model"], r["seed"], r["half"]))
+        run_or_report(variant_case, [] if args.report else accuracy_runs(args.accuracy), ACCURACY, accuracy_report,
+                      args.report, key=lambda r: (r["variant"], *accuracy_key(r)))
     else:
         run_or_report(fit, [] if args.report else runs(), RESULTS, report, args.report,
                       key=lambda r: (r["people"], r["model"], r["seed"], r["half"], r["variant"]))
