@@ -20,7 +20,9 @@ and with its seen points nudged by 1e-4 mm (§29's nudge), under:
   closest to an edge or a vertex of the surface (where two or more triangles tie, and which one the
   closest-point query returns is a coin a nudge flips) takes the direction from that closest point
   to the scan point, signed as the attached triangle's normal, instead of that triangle's normal;
-  in every Gauss–Newton solve (the pose's polish, the closed form, the hair test).
+  in every Gauss–Newton solve (the pose's polish, the closed form, the hair test);
+  ``edge-normals-everywhere``: the same normal also in the clutter rules' test of a point's normal
+  against the surface's (the pose's polish always runs it).
 
 ``--accuracy VARIANT`` refits the cases of studies/default_fallback.py (§23's sets: §15, §12, §9, §8
 in family; §19, §17 across families) under ``constant`` or ``edge-normals``, and sets them beside the
@@ -59,7 +61,9 @@ from study_runs import run_or_report  # noqa: E402
 RESULTS = ROOT / "studies" / "results" / "register_instability.json"
 ACCURACY = ROOT / "studies" / "results" / "register_instability_accuracy.json"
 SHIPPED = ROOT / "studies" / "results" / "default_fallback.json"
-VARIANTS = ("shipped", "constant", "taper", "fixed-levels", "settle", "settle-polish", "polish-taper", "edge-normals")
+VARIANTS = ("shipped", "constant", "taper", "fixed-levels", "settle", "settle-polish", "polish-taper", "edge-normals",
+            "edge-normals-everywhere")
+FORCED = ("shipped", "constant", "edge-normals", "edge-normals-everywhere")   # also fitted with the given pose
 TAPER = 0.25          # the taper's width, as a share of the trim's cut
 PER_LEVEL, LAST_LEVEL = 6, 12
 
@@ -152,12 +156,12 @@ def polish_taper():
     return [mock.patch.object(refinement, "ScanObjective", Tapered)]
 
 
-def edge_normals() -> list:
+def edge_normals(everywhere_too: bool = False) -> list:
     """ScanObjective's residuals, Jacobians and pose Jacobians with the offset's direction as the
     normal where a scan point's closest surface point lies on an edge or a vertex."""
     import torch
 
-    from statfit.objectives.scan import ON_EDGE, ScanObjective
+    from statfit.objectives.scan import ON_EDGE, ScanObjective, attached_normals
 
     def plane_normals(self) -> torch.Tensor:
         faces = self.normals
@@ -179,6 +183,14 @@ def edge_normals() -> list:
                 self._normals = faces
         return run
 
+    def everywhere(self) -> torch.Tensor:
+        if self._normals is None:
+            self._normals = attached_normals(self._refreshed_at, self._corner_ids)
+            self._normals = plane_normals(self)
+        return self._normals
+
+    if everywhere_too:
+        return [mock.patch.object(ScanObjective, "normals", property(everywhere))]
     return [mock.patch.object(ScanObjective, name, swapped(getattr(ScanObjective, name)))
             for name in ("residuals", "jacobian", "pose_jacobian")]
 
@@ -261,7 +273,8 @@ def patches(variant: str) -> list:
             "fixed-levels": constant + [mock.patch.object(stages, "fit_coefficients", fixed_levels)],
             "settle": [mock.patch.object(stages, "run_fit", settling(stages.run_fit))],
             "settle-polish": [mock.patch.object(search, "polish_pose", settled_polish(search.polish_pose))],
-            "polish-taper": polish_taper(), "edge-normals": edge_normals()}[variant]
+            "polish-taper": polish_taper(), "edge-normals": edge_normals(),
+            "edge-normals-everywhere": edge_normals(everywhere_too=True)}[variant]
 
 
 def fit(people: str, model_family: str, seed: int, half: str, variant: str) -> dict:
@@ -300,7 +313,7 @@ def fit(people: str, model_family: str, seed: int, half: str, variant: str) -> d
     nudged, _, nudged_fell_back = held(NUDGE_MM)
     row = {"people": people, "model": model_family, "seed": seed, "half": half, "variant": variant,
            "held": given, "nudged": nudged, "fell_back": [fell_back, nudged_fell_back]}
-    return row | ({"forced": held(NUDGE_MM, pose)[0]} if variant in ("shipped", "constant", "edge-normals") else {})
+    return row | ({"forced": held(NUDGE_MM, pose)[0]} if variant in FORCED else {})
 
 
 def runs() -> list[tuple]:
@@ -324,7 +337,7 @@ def report(rows: list[dict]) -> str:
         moved = np.abs(nudged / given - 1)
         lines.append(f"| {variant} | {len(own)} | {given.mean():.3f} | {nudged.mean():.3f} | {moved.mean():.3f} | "
                      f"{int((moved > 0.1).sum())} | {sum(r['fell_back'][0] for r in own)} |")
-        if variant in ("shipped", "constant", "edge-normals"):
+        if variant in FORCED:
             forced = np.abs(np.array([r["forced"] for r in own]) / given - 1)
             lines.append(f"| {variant}, nudged with the given pose | {len(own)} | {given.mean():.3f} | "
                          f"{np.mean([r['forced'] for r in own]):.3f} | {forced.mean():.3f} | "
