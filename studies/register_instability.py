@@ -22,7 +22,10 @@ and with its seen points nudged by 1e-4 mm (§29's nudge), under:
   to the scan point, signed as the attached triangle's normal, instead of that triangle's normal;
   in every Gauss–Newton solve (the pose's polish, the closed form, the hair test);
   ``edge-normals-everywhere``: the same normal also in the clutter rules' test of a point's normal
-  against the surface's (the pose's polish always runs it).
+  against the surface's (the pose's polish always runs it);
+- ``polish-30``, ``polish-30-edges``: what ships, with the pose's polish run for 30 Gauss–Newton
+  steps instead of POLISH_ITERATIONS (12; by 30 its steps turn < 0.001°); and that with
+  ``edge-normals-everywhere``.
 
 ``--accuracy VARIANT`` refits the cases of studies/default_fallback.py (§23's sets: §15, §12, §9, §8
 in family; §19, §17 across families) under ``constant`` or ``edge-normals``, and sets them beside the
@@ -62,8 +65,9 @@ RESULTS = ROOT / "studies" / "results" / "register_instability.json"
 ACCURACY = ROOT / "studies" / "results" / "register_instability_accuracy.json"
 SHIPPED = ROOT / "studies" / "results" / "default_fallback.json"
 VARIANTS = ("shipped", "constant", "taper", "fixed-levels", "settle", "settle-polish", "polish-taper", "edge-normals",
-            "edge-normals-everywhere")
-FORCED = ("shipped", "constant", "edge-normals", "edge-normals-everywhere")   # also fitted with the given pose
+            "edge-normals-everywhere", "polish-30", "polish-30-edges")
+# The variants whose nudged case is also fitted with the given pose.
+FORCED = ("shipped", "constant", "edge-normals", "edge-normals-everywhere", "polish-30", "polish-30-edges")
 TAPER = 0.25          # the taper's width, as a share of the trim's cut
 PER_LEVEL, LAST_LEVEL = 6, 12
 
@@ -265,16 +269,19 @@ def settled_polish(polish):
 
 def patches(variant: str) -> list:
     import statfit.core.stages as stages
+    import statfit.registration.pose.refinement as refinement
     import statfit.registration.pose.search as search
     from statfit.core.optim import UniformAdam
 
     constant = [mock.patch.object(UniformAdam, "_share", lambda self, t: 1.0)]
+    longer = [mock.patch.object(refinement, "POLISH_ITERATIONS", 30)]
     return {"shipped": [], "constant": constant, "taper": constant + taper_patches(),
             "fixed-levels": constant + [mock.patch.object(stages, "fit_coefficients", fixed_levels)],
             "settle": [mock.patch.object(stages, "run_fit", settling(stages.run_fit))],
             "settle-polish": [mock.patch.object(search, "polish_pose", settled_polish(search.polish_pose))],
             "polish-taper": polish_taper(), "edge-normals": edge_normals(),
-            "edge-normals-everywhere": edge_normals(everywhere_too=True)}[variant]
+            "edge-normals-everywhere": edge_normals(everywhere_too=True), "polish-30": longer,
+            "polish-30-edges": longer + edge_normals(everywhere_too=True)}[variant]
 
 
 def fit(people: str, model_family: str, seed: int, half: str, variant: str) -> dict:
