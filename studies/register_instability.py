@@ -34,7 +34,7 @@ shipped default's rows there (which must have run with the code as shipped).
 ``--landmark-pose`` runs the probe of the pose polished with the landmarks as a term (one case, three
 weights, the term on the pose and modes or on the pose alone) and prints what it does to the pose.
 
-    python studies/register_instability.py                  # ~30 min on 2 cores
+    python studies/register_instability.py                  # ~40 min on 2 cores
     python studies/register_instability.py --report
     python studies/register_instability.py --accuracy constant       # §19 and §17 only: ~5 min on 2 cores
     python studies/register_instability.py --accuracy edge-normals   # every set: ~8 min
