@@ -51,7 +51,7 @@ class UniformAdam(torch.optim.Optimizer):
                 t = state["step"]
                 denom = (largest / (1 - b2**t)).sqrt_().add_(group["eps"])
                 size = group["lr"] / (1 - b1**t)
-                p.sub_(m / denom, alpha=size * float(self._share(t)) if self.settle else size)
+                p.sub_(m / denom, alpha=size * self._share(t) if self.settle else size)
 
     def _share(self, t):
         """The settling share of the step size at step ``t`` (a number, or a tensor on the device)."""
