@@ -331,7 +331,7 @@ def build(settings: Settings, space: FitSpace, x0: torch.Tensor) -> tuple[Parame
     if settings.method not in METHODS:
         raise StatfitError(f"unknown method {settings.method!r}; choose one of {', '.join(METHODS)}")
     param, optimizer = METHODS[settings.method].build(settings, space, x0)
-    if settings.settle and not isinstance(optimizer, UniformAdam):
+    if settings.settle and not isinstance(optimizer, UniformAdam):     # a plugin's method (Settings checks ours)
         raise StatfitError(f"settle brings UniformAdam's step size down; {settings.method!r} steps with "
                            f"{type(optimizer).__name__}")
     return param, optimizer
