@@ -56,8 +56,10 @@ def fit(case_set: str, case: str, moved: float | None) -> dict:
         return refresh(self, *args, **kwargs)
 
     every = 1 if moved is None else EVERY
+    # as measured here: the alignment reused the visibility too (since §31 it refreshes every call)
     with mock.patch.object(visibility, "VISIBILITY_EVERY", every), \
             mock.patch.object(visibility, "VISIBILITY_MOVED", moved), \
+            mock.patch.object(visibility, "VISIBILITY_IN_ALIGNMENT", True), \
             mock.patch.object(SteadyRenderer, "__call__", counted_call), \
             mock.patch.object(SteadyRenderer, "_visibility", counted_refresh):
         row = _chosen(case, job) if case_set == "chosen" else _fit(case_set, case, job)

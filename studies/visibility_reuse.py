@@ -40,7 +40,9 @@ def fit(case_set: str, case: str, every: int) -> dict:
     import statfit.render.job as job
     import statfit.render.visibility as visibility
 
-    with mock.patch.object(visibility, "VISIBILITY_EVERY", every):
+    # as measured here: the alignment reused the visibility too (since §31 it refreshes every call)
+    with mock.patch.object(visibility, "VISIBILITY_EVERY", every), \
+            mock.patch.object(visibility, "VISIBILITY_IN_ALIGNMENT", True):
         row = _chosen(case, job) if case_set == "chosen" else _fit(case_set, case, job)
     return {"set": case_set, "case": case, "every": every} | row
 

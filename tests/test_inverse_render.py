@@ -18,6 +18,8 @@ from statfit.core.pose import fit_pose
 from statfit.synth.sample import camera_for_view
 from statfit.renderer.images import render_target
 
+from conftest import normal_map_scene
+
 SIZE = 128
 
 
@@ -272,7 +274,7 @@ def test_the_visibility_is_reused_where_no_graph_captures_the_fit_and_never_for_
     import statfit.render.visibility as visibility
     from statfit.render.visibility import visibility_every
 
-    monkeypatch.setattr(visibility, "VISIBILITY_EVERY", 4)       # shipped: 1 (docs/studies.md §26)
+    monkeypatch.setattr(visibility, "VISIBILITY_EVERY", 4)       # shipped: 4 (docs/studies.md §31)
     cpu, cuda = torch.device("cpu"), torch.device("cuda")
     assert visibility_every("tuned", cpu) == 4
     assert visibility_every("paper", cpu) == 1
@@ -280,6 +282,43 @@ def test_the_visibility_is_reused_where_no_graph_captures_the_fit_and_never_for_
     assert visibility_every("tuned", cuda) == 1
     monkeypatch.setenv("STATFIT_CUDA_GRAPHS", "0")
     assert visibility_every("tuned", cuda) == 4
+
+
+def test_the_alignment_refreshes_the_visibility_every_call_unless_told_to_reuse_it(monkeypatch):
+    import statfit.render.visibility as visibility
+    from statfit.render.visibility import alignment_visibility
+
+    assert alignment_visibility(4, 1.0) == {"visibility_every": 1, "visibility_moved": None}   # shipped (§31)
+    monkeypatch.setattr(visibility, "VISIBILITY_IN_ALIGNMENT", True)
+    assert alignment_visibility(4, 1.0) == {"visibility_every": 4, "visibility_moved": 1.0}
+
+
+def test_a_default_render_fit_reuses_the_visibility_in_its_stages_and_not_in_its_alignment(embedded_model):
+    """Counted on a real fit: the alignment's renderer refreshes on every call, the fit's on one in
+    ``VISIBILITY_EVERY`` (and at each stage's start)."""
+    from statfit.render.job import reconstruct
+    from statfit.render.visibility import VISIBILITY_EVERY
+    from statfit.renderer.steady import SteadyRenderer
+
+    normal_map, camera = normal_map_scene(embedded_model, 48)
+    counts: dict[int, list[int]] = {}
+    call, refresh = SteadyRenderer.__call__, SteadyRenderer._visibility
+
+    def counted_call(self, *args, **kwargs):
+        counts.setdefault(id(self), [0, 0])[0] += 1
+        return call(self, *args, **kwargs)
+
+    def counted_refresh(self, *args, **kwargs):
+        counts.setdefault(id(self), [0, 0])[1] += 1
+        return refresh(self, *args, **kwargs)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(SteadyRenderer, "__call__", counted_call)
+        patch.setattr(SteadyRenderer, "_visibility", counted_refresh)
+        reconstruct(embedded_model, normal_map, camera, "default", align="rigid", iterations=40, threads=1)
+    (alignment_calls, alignment_refreshes), (fit_calls, fit_refreshes) = counts.values()
+    assert alignment_refreshes == alignment_calls > 0
+    assert fit_calls / VISIBILITY_EVERY <= fit_refreshes < fit_calls / 2
 
 
 def test_the_movement_limit_applies_only_where_the_visibility_is_reused(monkeypatch):

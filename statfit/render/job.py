@@ -31,7 +31,7 @@ from statfit.core.methods import resolve
 from statfit.core.settings import FitSpace, Settings
 from statfit.model.statmodel import StatModel, region_triangles
 from statfit.objectives.normals import SILHOUETTE_WEIGHT, NormalMapObjective
-from statfit.render.visibility import visibility_options
+from statfit.render.visibility import alignment_visibility, visibility_options
 from statfit.core.pose import camera_in_frame, fit_pose
 from statfit.core.device import resolve_device
 from statfit.renderer import Camera, MeshAdjacency, rasterize
@@ -259,7 +259,7 @@ class PosedView:
                 guess = _centring_guess(x0, faces, unit_camera, normal_map.mask, align == "similarity")
                 coarse = NormalMapObjective(*downsampled(target, mask, unit_camera, ALIGN_SIZE), faces,
                                             silhouette_weight, adjacency, one_sided=one_sided, covering=covering,
-                                            visibility_every=visibility_every, visibility_moved=visibility_moved)
+                                            **alignment_visibility(visibility_every, visibility_moved))
                 pose, x0 = _align(x0, coarse, space, guess, align == "similarity", unit_camera.rotation[2].to(dtype))
         posed_camera = camera_in_frame(camera, frame, pose)
         options = dict(faces=faces, silhouette_weight=silhouette_weight if region is None else 0.0,
