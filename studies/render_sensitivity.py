@@ -31,11 +31,9 @@ RESULTS = ROOT / "studies" / "results" / "render_sensitivity.json"
 NUDGE = 1e-6
 
 
-def fit(case_set: str, case: str, nudge: float) -> dict:
-    """One case's default fit, its target normals nudged by ``nudge`` (0: as given)."""
-    single_threaded()
-    import statfit.render.job as job
-
+def nudging(job, nudge: float):
+    """A context in which ``job``'s target normals are nudged by ``nudge`` (Gaussian, seed 1,
+    renormalised; 0: as given)."""
     given = job.camera_space_normals
 
     def nudged(normal_map, *args, **kwargs):
@@ -45,7 +43,15 @@ def fit(case_set: str, case: str, nudge: float) -> dict:
         length = np.linalg.norm(moved, axis=-1, keepdims=True)
         return np.where(normal_map.mask[..., None], moved / np.maximum(length, 1e-12), normals)
 
-    with mock.patch.object(job, "camera_space_normals", nudged) if nudge else contextlib.nullcontext():
+    return mock.patch.object(job, "camera_space_normals", nudged) if nudge else contextlib.nullcontext()
+
+
+def fit(case_set: str, case: str, nudge: float) -> dict:
+    """One case's default fit, its target normals nudged by ``nudge`` (0: as given)."""
+    single_threaded()
+    import statfit.render.job as job
+
+    with nudging(job, nudge):
         return {"set": case_set, "case": case, "nudge": nudge} | _fit(case_set, case, job)
 
 

@@ -7,8 +7,9 @@ from statfit.core.graphs import graphs_capture
 
 # Fitting calls per refresh: 4, in the fit's stages only (the alignment refreshes every call). Chosen on
 # ICT's jaw-open and smile maps at 512²; checked on ICT's rendering study, §18's cross-family cases and
-# the body study: every set's error within its nudge floor, each fit's loop ~0.67x as long (docs/studies.md
-# §31). Reused in the alignment too, it made cross-family fits up to 43% worse (§26).
+# the body study, and on new people: every set's error within its nudge floor; an iteration 0.62-0.63x and
+# the whole fit 0.67-0.69x as long at 512² (docs/studies.md §31). Reused in the alignment too, it made
+# cross-family fits up to 43% worse (§26).
 VISIBILITY_EVERY = 4
 # Pixels a vertex may move before the visibility is refreshed between those calls (None: never). Up to
 # 16 calls with 1 px (alignment included): 0.55x the time, cross-family fits 4% better on average,
