@@ -23,7 +23,6 @@ the rule "fall back where the signal exceeds τ", τ chosen on the in-family set
 """
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 

@@ -9,7 +9,6 @@ import pytest
 import torch
 import trimesh
 
-from statfit.geometry.align import Similarity
 from statfit.geometry.closest import ClosestPointQuery, open_edges
 from statfit.errors import StatfitError
 from statfit.registration.pose.search import estimate_pose

@@ -108,7 +108,6 @@ def test_a_head_fitted_to_a_map_of_its_face_alone_lands_closer_with_the_covering
     face_faces = embedded_model.faces[np.isin(embedded_model.faces, embedded_model.regions["face"]).all(axis=1)]
     camera = camera_for_view(person, 20.0, 5.0, 96)
     normal_map = NormalMap(*render_target(person, face_faces, camera))
-    face = np.unique(face_faces)
     errors = {}
     for sides in ("two-sided", "covering"):
         fit = reconstruct(embedded_model, normal_map, camera, "default", silhouette=sides, iterations=120, threads=1)
