@@ -10,7 +10,7 @@ ICT rendering-study cases at 256², §18's cross-family cases at 256², the body
 bits), so only the reused fits run here. Then the shipped rule on people nothing was chosen on
 (``FRESH``), with their own floor. One thread a fit, two fits side by side.
 
-    python studies/visibility_fit_only.py            # ~25 min on 2 cores
+    python studies/visibility_fit_only.py            # ~30 min on 2 cores
     python studies/visibility_fit_only.py --report
 """
 from __future__ import annotations
