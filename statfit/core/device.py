@@ -16,9 +16,9 @@ DETERMINISTIC_ENV = "STATFIT_DETERMINISTIC"
 # Where ``auto`` runs each job when a GPU is there: where it was measured faster (2026-11-26, an
 # NVIDIA H200, ICT, docs/benchmarks.md §12). register's default fit took 3.75 s on the GPU, no faster
 # than one CPU core (2.6–4.2 s; its loop waits on kernel launches, its set-up runs on the host): the
-# CPU. render's took 21.3 s against ~30 s: the GPU (16.1 s since its iterations run as CUDA graphs,
-# an H100; register's 3.35 s there). Jobs not named (splat, inpaint; not measured on a GPU yet) go
-# to the GPU.
+# CPU. render's took 21.3 s against ~30 s: the GPU (4.6 s on an H100 since session 23, captured, against
+# 25 s at 512² on one CPU core since the fit's stages reuse their visibility, docs/benchmarks.md §12;
+# register's 3.35-4.3 s there). Jobs not named (splat, inpaint; not measured on a GPU yet) go to the GPU.
 AUTO_ON_GPU = {"register": False, "render": True}
 
 
