@@ -30,6 +30,7 @@ from adaptive_choice import single_threaded  # noqa: E402
 from alignment_settle import SETS, _fit  # noqa: E402
 from render_sensitivity import NUDGE, nudging  # noqa: E402
 from study_runs import study_main  # noqa: E402
+from visibility_moved import counted_refreshes  # noqa: E402
 from visibility_reuse import CHOSEN, UNITS, _chosen  # noqa: E402
 
 RESULTS = ROOT / "studies" / "results" / "visibility_fit_only.json"
@@ -50,25 +51,11 @@ def fit(case_set: str, case: str, rule: str) -> dict:
     single_threaded()
     import statfit.render.job as job
     import statfit.render.visibility as visibility
-    from statfit.renderer.steady import SteadyRenderer
-
-    calls = {"calls": 0, "refreshes": 0}
-    call, refresh = SteadyRenderer.__call__, SteadyRenderer._visibility
-
-    def counted_call(self, *args, **kwargs):
-        calls["calls"] += 1
-        return call(self, *args, **kwargs)
-
-    def counted_refresh(self, *args, **kwargs):
-        calls["refreshes"] += 1
-        return refresh(self, *args, **kwargs)
 
     every, moved = RULES[rule]
     with mock.patch.object(visibility, "VISIBILITY_EVERY", every), \
             mock.patch.object(visibility, "VISIBILITY_MOVED", moved), \
-            mock.patch.object(visibility, "VISIBILITY_IN_ALIGNMENT", False), \
-            mock.patch.object(SteadyRenderer, "__call__", counted_call), \
-            mock.patch.object(SteadyRenderer, "_visibility", counted_refresh), \
+            mock.patch.object(visibility, "VISIBILITY_IN_ALIGNMENT", False), counted_refreshes() as calls, \
             nudging(job, NUDGE if rule.endswith("-nudged") else 0.0):
         row = _chosen(case, job) if case_set == "chosen" else _fit(case_set.removesuffix("-fresh"), case, job)
     return {"set": case_set, "case": case, "rule": rule} | row | {"refreshed": calls["refreshes"] / calls["calls"]}

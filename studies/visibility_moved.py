@@ -15,6 +15,7 @@ seconds, and the share of the renderer's calls that refreshed.
 """
 from __future__ import annotations
 
+import contextlib
 import sys
 from pathlib import Path
 from unittest import mock
@@ -36,12 +37,9 @@ CANDIDATES = (0.25, 0.5, 1.0)                # pixels a vertex may move before a
 CHECKED = 1.0                                # the choice, checked on the other sets against every call
 
 
-def fit(case_set: str, case: str, moved: float | None) -> dict:
-    """One case's default fit, refreshing every call (``moved`` None) or reusing the visibility for
-    up to ``EVERY`` calls while no vertex moved more than ``moved`` pixels."""
-    single_threaded()
-    import statfit.render.job as job
-    import statfit.render.visibility as visibility
+@contextlib.contextmanager
+def counted_refreshes():
+    """Inside, the renderer's calls and visibility refreshes are counted: yields {"calls", "refreshes"}."""
     from statfit.renderer.steady import SteadyRenderer
 
     calls = {"calls": 0, "refreshes": 0}
@@ -55,13 +53,23 @@ def fit(case_set: str, case: str, moved: float | None) -> dict:
         calls["refreshes"] += 1
         return refresh(self, *args, **kwargs)
 
+    with mock.patch.object(SteadyRenderer, "__call__", counted_call), \
+            mock.patch.object(SteadyRenderer, "_visibility", counted_refresh):
+        yield calls
+
+
+def fit(case_set: str, case: str, moved: float | None) -> dict:
+    """One case's default fit, refreshing every call (``moved`` None) or reusing the visibility for
+    up to ``EVERY`` calls while no vertex moved more than ``moved`` pixels."""
+    single_threaded()
+    import statfit.render.job as job
+    import statfit.render.visibility as visibility
+
     every = 1 if moved is None else EVERY
     # as measured here: the alignment reused the visibility too (since §31 it refreshes every call)
     with mock.patch.object(visibility, "VISIBILITY_EVERY", every), \
             mock.patch.object(visibility, "VISIBILITY_MOVED", moved), \
-            mock.patch.object(visibility, "VISIBILITY_IN_ALIGNMENT", True), \
-            mock.patch.object(SteadyRenderer, "__call__", counted_call), \
-            mock.patch.object(SteadyRenderer, "_visibility", counted_refresh):
+            mock.patch.object(visibility, "VISIBILITY_IN_ALIGNMENT", True), counted_refreshes() as calls:
         row = _chosen(case, job) if case_set == "chosen" else _fit(case_set, case, job)
     return {"set": case_set, "case": case, "moved": moved} | row | {"refreshed": calls["refreshes"] / calls["calls"]}
 
