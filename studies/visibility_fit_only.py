@@ -27,7 +27,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from adaptive_choice import single_threaded  # noqa: E402
-from alignment_settle import SETS, _fit  # noqa: E402
+from alignment_settle import FAMILIES, SETS, _fit  # noqa: E402
 from render_sensitivity import NUDGE, nudging  # noqa: E402
 from study_runs import study_main  # noqa: E402
 from visibility_moved import counted_refreshes  # noqa: E402
@@ -40,8 +40,7 @@ RULES = {"moved-1px": (16, 1.0), "every-4": (4, None),   # (calls per refresh at
 # People none of the above chose or checked anything on: §18's families with two more seeds each, two more
 # bodies; each fitted every call, with the shipped rule, and every call with the map nudged as §28 does
 # (the floor of these cases).
-FRESH = {"cross-fresh": tuple(f"{p}/{m}/{s}" for p in ("ict", "ict-mask", "makehuman")
-                              for m in ("ict", "ict-mask", "makehuman") for s in (2, 3)),
+FRESH = {"cross-fresh": tuple(f"{p}/{m}/{s}" for p in FAMILIES for m in FAMILIES for s in (2, 3)),
          "body-fresh": tuple(f"{seed}/{yaw:g}" for seed in (7, 8) for yaw in (30.0, -60.0))}
 SHIPPED = "every-4"
 
