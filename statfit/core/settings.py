@@ -38,7 +38,8 @@ class Settings:
     (Adam, or UniformAdam for filtered methods; ``lr``, ``adam_betas``) or "gauss-newton" (pca on a scan:
     the closed-form coefficient solve, ``iterations`` an upper bound, ``noise`` σ the residual noise
     that weighs the Gaussian prior, in fit-frame units, reached through ``levels`` continuation
-    levels). ``prior``: with Adam on pca's coefficients c (in standard deviations), the weight w of
+    levels; ``choose_levels`` N > 0: of the last N levels, the one whose prior best predicts the
+    scan's held-out edge, :func:`statfit.core.gauss_newton.fit_coefficients`). ``prior``: with Adam on pca's coefficients c (in standard deviations), the weight w of
     a Gaussian prior term w · mean(c²) (0: none). ``landmarks`` False: the stage does not fit a
     landmark term (the landmarks, if given, still place the start and the other stages).
     ``settle``: with UniformAdam, the share of the stage's last iterations over which the step size
@@ -60,6 +61,7 @@ class Settings:
     optimizer: str = "adam"
     noise: float = 0.003
     levels: int = 5
+    choose_levels: int = 0
     prior: float = 0.0
     landmarks: bool = True
     settle: float = 0.0
@@ -67,8 +69,12 @@ class Settings:
     def __post_init__(self) -> None:
         check_int("iterations", self.iterations, 1, MAX_ITERATIONS)
         check_int("levels", self.levels, 1, MAX_LEVELS)
+        check_int("choose_levels", self.choose_levels, 0, self.levels)
         if self.optimizer not in OPTIMIZERS:
             raise StatfitError(f"unknown optimizer {self.optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
+        if self.choose_levels and self.optimizer != "gauss-newton":
+            raise StatfitError("choose_levels chooses among the Gauss–Newton stage's prior levels; "
+                               f"the {self.optimizer!r} stage has none")
         if self.optimizer == "adam":
             _check_number("lr (the step size)", self.lr, positive=True)
         elif self.method != "pca":

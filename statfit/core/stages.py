@@ -68,7 +68,8 @@ def run_stages(stages: tuple[Settings, ...], space: FitSpace, objective: Objecti
                                    "use the Adam pca stage here")
             with timer("gauss-newton"):
                 result = fit_coefficients(space.mean, space.basis_t, space.std, stage_objective, x, settings.iterations,
-                                          settings.noise, settings.levels, first_iteration=done, on_record=on_record,
+                                          settings.noise, settings.levels, settings.choose_levels, first_iteration=done,
+                                          on_record=on_record,
                                           on_snapshot=on_snapshot)
         else:
             param, optimizer = build(settings, space, x)

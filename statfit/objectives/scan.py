@@ -209,6 +209,10 @@ class ScanObjective:
         offset = (self.points - self._attached(vertices))[self._keep]
         return (offset * self.normals[self._keep]).sum(dim=-1)
 
+    def residual_points(self) -> torch.Tensor:
+        """(M', 3) the scan points of :meth:`residuals`' rows (those kept at the last refresh)."""
+        return self.points[self._keep]
+
     def jacobian(self, directions: torch.Tensor) -> torch.Tensor:
         """∂residuals/∂c (M', K) for vertices moving along K ``directions`` stored vertex-major,
         (N, 3, K)."""
