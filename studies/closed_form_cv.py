@@ -193,7 +193,8 @@ def report(rows: list[dict]) -> str:
              "the best of the four methods rerun here (" + ", ".join(SINGLE) + "); the cases that fell back; "
              "each choosing variant's choices of σ.", "",
              "| people | model | cases | " + " | ".join(shown) + " | oracle | best single | fell back ("
-             + " / ".join(("before", *CHOOSING, SHIPPED)) + ") | " + " | ".join(f"{v} chose σ" for v in CHOOSING) + " |",
+             + " / ".join(("before", *CHOOSING, SHIPPED)) + ") | "
+             + " | ".join(f"{v} chose σ" for v in CHOOSING) + " |",
              "|---|---|---|" + "---|" * (len(shown) + 3 + len(CHOOSING))]
     keys = sorted({k[2:] for k in by if k[0] == "§19"})
     pairs = list(dict.fromkeys(k[:2] for k in keys))
@@ -213,9 +214,11 @@ def report(rows: list[dict]) -> str:
         lines.append(f"| {pair[0]} | {pair[1]} | {len(cases)} | " + " | ".join(f"{np.mean(held[v]):.2f}" for v in shown)
                      + f" | {np.mean(held['oracle']):.2f} | {best:.2f} | " + " / ".join(map(str, fell)) + " | "
                      + " | ".join(_choices(by, "§19", v, cases) for v in CHOOSING) + " |")
-    lines.append(f"| all | all | {len(totals['before'])} | " + " | ".join(f"**{np.mean(totals[v]):.3f}**" for v in shown)
+    lines.append(f"| all | all | {len(totals['before'])} | "
+                 + " | ".join(f"**{np.mean(totals[v]):.3f}**" for v in shown)
                  + f" | {np.mean(totals['oracle']):.3f} | | |" + " |" * len(CHOOSING))
-    lines.append("| pairs ≤ their best single method | | | " + " | ".join(f"{below[v]} of {len(pairs)}" for v in shown)
+    lines.append("| pairs ≤ their best single method | | | "
+                 + " | ".join(f"{below[v]} of {len(pairs)}" for v in shown)
                  + " | | | |" + " |" * len(CHOOSING))
     lines.append("| single methods, all | | | " + ", ".join(f"{m} {np.mean(totals[m]):.3f}" for m in SINGLE)
                  + " |" * (len(shown) + 3 + len(CHOOSING)))
@@ -224,7 +227,8 @@ def report(rows: list[dict]) -> str:
     if within:
         lines += ["", "§15 (ICT half faces, in family, ICT's first 50 modes): held-out mm and all-vertex mm, mean "
                   "over the cases; the choosing variants' choices of σ.", "",
-                  "| variant | cases | held-out | all vertices | ÷ before (held-out) | chose σ |", "|---|---|---|---|---|---|"]
+                  "| variant | cases | held-out | all vertices | ÷ before (held-out) | chose σ |",
+                  "|---|---|---|---|---|---|"]
         shipped = np.mean([by[("§15", "before", *k)]["held"] for k in within])
         for v in SETS["§15"]:
             held = np.mean([by[("§15", v, *k)]["held"] for k in within])
@@ -233,8 +237,9 @@ def report(rows: list[dict]) -> str:
                          + (_choices(by, "§15", v, within) if v in CHOOSING else "") + " |")
     checked = [name for name in ("§17", "§12", "§9") if any(k[0] == name for k in by)]
     if checked:
-        lines += ["", "The other sets of docs/studies.md §23, the default before and under cv-edge 2 (the study's) and "
-                  "as shipped (§17: held-out mm; §12: all-vertex mm; §9: all-vertex cm); the largest ratio of a case "
+        lines += ["", "The other sets of docs/studies.md §23, the default before and under cv-edge 2 (the study's) "
+                  "and as shipped (§17: held-out mm; §12: all-vertex mm; §9: all-vertex cm); the largest ratio "
+                  "of a case "
                   "as shipped to before.", "",
                   "| set | cases | before | cv-edge 2 | as shipped | as shipped ÷ before | largest case ratio "
                   "| fell back (before / as shipped) | cv-edge 2 chose σ |", "|---|---|---|---|---|---|---|---|---|"]
@@ -243,7 +248,8 @@ def report(rows: list[dict]) -> str:
             cases = [k[2:] for k in by if k[0] == name and k[1] == "before"
                      and all((name, v, *k[2:]) in by for v in SETS[name])]
             errors = {v: [by[(name, v, *k)][error] for k in cases] for v in SETS[name]}
-            fell = [sum(bool(by[(name, v, *k)].get("fallback", {}).get("used")) for k in cases) for v in ("before", SHIPPED)]
+            fell = [sum(bool(by[(name, v, *k)].get("fallback", {}).get("used")) for k in cases)
+                    for v in ("before", SHIPPED)]
             lines.append(f"| {name} | {len(cases)} | " + " | ".join(f"{np.mean(errors[v]):.4g}" for v in SETS[name])
                          + f" | {np.mean(errors[SHIPPED]) / np.mean(errors['before']):.3f} | "
                          f"{max(np.divide(errors[SHIPPED], errors['before'])):.2f} | {fell[0]} / {fell[1]} | "

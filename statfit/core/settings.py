@@ -39,8 +39,9 @@ class Settings:
     the closed-form coefficient solve, ``iterations`` an upper bound, ``noise`` σ the residual noise
     that weighs the Gaussian prior, in fit-frame units, reached through ``levels`` continuation
     levels; ``choose_levels`` N > 0: of the last N levels, the one whose prior best predicts the
-    scan's held-out edge, :func:`statfit.core.gauss_newton.fit_coefficients`). ``prior``: with Adam on pca's coefficients c (in standard deviations), the weight w of
-    a Gaussian prior term w · mean(c²) (0: none). ``landmarks`` False: the stage does not fit a
+    scan's held-out edge, :func:`statfit.core.gauss_newton.fit_coefficients`). ``prior``: with Adam
+    on pca's coefficients c (in standard deviations), the weight w of a Gaussian prior term
+    w · mean(c²) (0: none). ``landmarks`` False: the stage does not fit a
     landmark term (the landmarks, if given, still place the start and the other stages).
     ``settle``: with UniformAdam, the share of the stage's last iterations over which the step size
     falls linearly to 0 (0: constant, the paper's), so the fit comes to rest instead of ending
