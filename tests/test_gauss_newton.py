@@ -126,6 +126,19 @@ def test_held_out_error_is_the_step_refitted_without_the_held_rows(rng):
     assert got == pytest.approx(expected, rel=1e-9)
 
 
+def test_held_out_error_is_infinite_where_it_cannot_be_scored(rng):
+    """No row held, every row held, or no prior and fewer rows than modes: a level that cannot be
+    scored is never chosen."""
+    from statfit.core.gauss_newton import held_out_error
+
+    jac, r, coeffs = (torch.as_tensor(a) for a in (rng.standard_normal((8, 5)), rng.standard_normal(8),
+                                                    rng.standard_normal(5)))
+    for held in (torch.zeros(8, dtype=torch.bool), torch.ones(8, dtype=torch.bool)):
+        assert held_out_error(jac, r, coeffs, 0.1, held) == float("inf")
+    one_kept = torch.arange(8) > 0
+    assert held_out_error(torch.zeros(8, 5, dtype=torch.float64), r, coeffs, 0.0, one_kept) == float("inf")
+
+
 def test_the_edge_is_the_quarter_of_the_points_towards_the_start():
     from statfit.core.gauss_newton import edge_rows
 

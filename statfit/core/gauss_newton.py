@@ -76,6 +76,8 @@ def edge_rows(points: torch.Tensor, start: torch.Tensor, share: float = EDGE_SHA
     from their centroid to the centroid of the ``start`` vertices (N, 3): the scan's edge that faces
     the part of the model it does not show."""
     points = points.double()
+    if len(points) == 0:
+        return torch.zeros(0, dtype=torch.bool, device=points.device)
     along = points @ (start.double().mean(dim=0) - points.mean(dim=0))
     return along >= torch.quantile(along, 1.0 - share)
 
@@ -84,14 +86,21 @@ def held_out_error(jac: torch.Tensor, r: torch.Tensor, coeffs: torch.Tensor, pri
                    held: torch.Tensor) -> float:
     """How well the rows not ``held`` (R,) bool predict the others at this prior: the mean squared
     residual of the held rows after the Gauss–Newton step from ``coeffs`` (K,) taken without them
-    (their linear model: ``jac`` (R, K), ``r`` (R,), float64; the prior's weight per row as the fit's)."""
+    (their linear model: ``jac`` (R, K), ``r`` (R,), float64; the prior's weight per row as the fit's).
+    Infinite where no row is held or none is left to predict them, or the solve fails."""
+    if not bool(held.any()) or bool(held.all()):
+        return math.inf
     kept_jac, kept_r = jac[~held], r[~held]
     count = max(len(kept_r), 1)
     lhs = kept_jac.T @ kept_jac / count
     lhs = lhs + (prior_weight + SINGULAR_GUARD * float(lhs.diagonal().mean())) * torch.eye(
         len(coeffs), dtype=jac.dtype, device=jac.device)
-    step = torch.linalg.solve(lhs, kept_jac.T @ kept_r / count + prior_weight * coeffs)
-    return float((r[held] - jac[held] @ step).square().mean())
+    try:
+        step = torch.linalg.solve(lhs, kept_jac.T @ kept_r / count + prior_weight * coeffs)
+    except torch.linalg.LinAlgError:      # no prior (σ = 0) and fewer rows than modes
+        return math.inf
+    error = float((r[held] - jac[held] @ step).square().mean())
+    return error if math.isfinite(error) else math.inf
 
 
 def fit_coefficients(mean: torch.Tensor, basis_t: torch.Tensor, std: torch.Tensor, objective: LeastSquaresObjective,
@@ -106,8 +115,9 @@ def fit_coefficients(mean: torch.Tensor, basis_t: torch.Tensor, std: torch.Tenso
 
     ``choose_levels`` N > 0: each of the path's last N levels, once converged, is scored by
     :func:`held_out_error` on the scan's edge (:func:`edge_rows`, from the ``x0`` it starts at), and
-    the fit returned is the level with the least error (its coefficients and terms); the objective
-    then needs ``residual_points``. A path the ``iterations`` cut short ends where it stopped, as without."""
+    the fit returned is the level with the least error (its coefficients and terms; on a tie, the
+    earlier), the last level where none could be scored; the objective then needs
+    ``residual_points``. A path the ``iterations`` cut short ends where it stopped, as without."""
     started = time.perf_counter()
     directions = mode_directions(basis_t, std).contiguous()
     coeffs = (torch.mv(basis_t, (x0 - mean).reshape(-1)) / std).double()
@@ -141,7 +151,7 @@ def fit_coefficients(mean: torch.Tensor, basis_t: torch.Tensor, std: torch.Tenso
                 tried.append((held_out_error(jac, r, coeffs, prior_weight, held), coeffs, terms))
             schedule.pop(0)       # this level has converged: the next, or the end
             if not schedule:
-                if tried:
+                if tried and math.isfinite(min(each[0] for each in tried)):
                     _, coeffs, terms = min(tried, key=lambda each: each[0])
                 break
             level_start, sigma, prior_weight = done - 1, schedule[0], schedule[0] ** 2 / count
