@@ -62,53 +62,31 @@ SETS = {"§19": ("before", "σ 0.01", "σ 0.03", *CHOOSING, SHIPPED, *SINGLE),
         "§9": ("before", "cv-edge 2", SHIPPED), "§8": ("before", SHIPPED),
         "§19, new people": ("before", SHIPPED, "laplacian")}
 NEW_PEOPLE = (2, 3)     # seeds of §19's families that no study had fitted: the check on people nothing chose
-EDGE = 0.25         # cv-edge: the share of the points held out
 LAST_LEVELS = 2     # cv-edge 2: the levels it chooses among (the last two: σ 0.0095 and 0.003)
 
 
-def block_labels(points: np.ndarray) -> np.ndarray:
-    """(M,) block of each point (M, 3): thirds along the points' first principal axis × halves
-    along the second."""
-    centred = points - points.mean(axis=0)
-    axes = np.linalg.svd(centred, full_matrices=False)[2]
-    first, second = centred @ axes[0], centred @ axes[1]
-    return np.searchsorted(np.quantile(first, [1 / 3, 2 / 3]), first) * 2 + (second > np.median(second))
-
-
-def edge_labels(points: np.ndarray, start: np.ndarray) -> np.ndarray:
-    """(M,) 0 for the share :data:`EDGE` of the points (M, 3) farthest along the direction from
-    their centroid to the start's (N, 3) (the scan's edge that faces what it does not show, as §20
-    held it out), 1 for the rest."""
-    along = points @ (start.mean(axis=0) - points.mean(axis=0))
-    return (along < np.quantile(along, 1 - EDGE)).astype(np.int64)
-
-
-def block_error(jac, r, coeffs, prior_weight: float, labels: np.ndarray, held: list[int] | None = None) -> float:
-    """The mean over the blocks ``held`` (default: every block of ``labels``) of a block's mean
-    squared residual predicted by the Gauss–Newton step (``statfit.core.gauss_newton``) taken
-    without its rows; jac (R, K), r (R,), coeffs (K,) float64."""
+def block_masks(points) -> list:
+    """(M,) bool masks of the points (M, 3, a tensor) in each of 6 blocks: thirds along their first
+    principal axis × halves along the second."""
     import torch
 
-    gram, gradient, eye = jac.T @ jac, jac.T @ r, torch.eye(len(coeffs), dtype=jac.dtype)
-    errors = []
-    for block in np.unique(labels) if held is None else held:
-        rows = torch.as_tensor(labels == block)
-        jb, rb = jac[rows], r[rows]
-        rest = len(r) - int(rows.sum())
-        lhs = (gram - jb.T @ jb) / rest + prior_weight * eye
-        step = torch.linalg.solve(lhs, (gradient - jb.T @ rb) / rest + prior_weight * coeffs)
-        errors.append(float((rb - jb @ step).square().mean()))
-    return float(np.mean(errors))
+    centred = points - points.mean(dim=0)
+    axes = torch.linalg.svd(centred, full_matrices=False)[2]
+    first, second = centred @ axes[0], centred @ axes[1]
+    third = torch.bucketize(first, torch.quantile(first, torch.tensor([1 / 3, 2 / 3], dtype=first.dtype)))
+    upper = second > torch.quantile(second, 0.5)
+    return [(third == t) & (upper == u) for t in range(3) for u in (False, True)]
 
 
 def cross_validated(fit_coefficients, chosen: list, edge: bool = False, last: int | None = None):
     """``fit_coefficients`` that runs the continuation to each of its levels and keeps the level
-    whose blocks are predicted best (each level's σ and error, and the one kept, appended to
-    ``chosen``): the six blocks of :func:`block_labels`, or with ``edge`` the edge of
-    :func:`edge_labels`; among the ``last`` levels only, where given."""
+    whose held-out points are predicted best (``statfit.core.gauss_newton.held_out_error``; each
+    level's σ and error, and the one kept, appended to ``chosen``): the mean over the six blocks of
+    :func:`block_masks`, or with ``edge`` the scan's edge (``edge_rows``, as shipped); among the
+    ``last`` levels only, where given."""
     import math
 
-    from statfit.core.gauss_newton import mode_directions
+    from statfit.core.gauss_newton import edge_rows, held_out_error, mode_directions
 
     def choose(mean, basis_t, std, objective, x0, iterations, noise, levels, choose_levels, **options):
         directions = mode_directions(basis_t, std).contiguous()
@@ -119,10 +97,10 @@ def cross_validated(fit_coefficients, chosen: list, edge: bool = False, last: in
             objective.refresh(fit.vertices)
             r = objective.residuals(fit.vertices).double()
             jac = objective.jacobian(directions).double()
-            kept = objective.points[objective._keep].double().cpu().numpy()
-            labels = edge_labels(kept, x0.double().cpu().numpy()) if edge else block_labels(kept)
-            tried.append((block_error(jac, r, fit.coefficients, sigma ** 2 / len(r), labels, [0] if edge else None),
-                          sigma, fit))
+            points = objective.residual_points().double()
+            held = [edge_rows(points, x0)] if edge else block_masks(points)
+            error = np.mean([held_out_error(jac, r, fit.coefficients, sigma ** 2 / len(r), h) for h in held])
+            tried.append((float(error), sigma, fit))
         error, sigma, fit = min(tried, key=lambda t: t[0])
         chosen.append({"sigma": sigma, "levels": [(s, e) for e, s, _ in tried]})
         return fit

@@ -91,7 +91,7 @@ def held_out_error(jac: torch.Tensor, r: torch.Tensor, coeffs: torch.Tensor, pri
     if not bool(held.any()) or bool(held.all()):
         return math.inf
     kept_jac, kept_r = jac[~held], r[~held]
-    count = max(len(kept_r), 1)
+    count = len(kept_r)
     lhs = kept_jac.T @ kept_jac / count
     lhs = lhs + (prior_weight + SINGULAR_GUARD * float(lhs.diagonal().mean())) * torch.eye(
         len(coeffs), dtype=jac.dtype, device=jac.device)
@@ -151,8 +151,9 @@ def fit_coefficients(mean: torch.Tensor, basis_t: torch.Tensor, std: torch.Tenso
                 tried.append((held_out_error(jac, r, coeffs, prior_weight, held), coeffs, terms))
             schedule.pop(0)       # this level has converged: the next, or the end
             if not schedule:
-                if tried and math.isfinite(min(each[0] for each in tried)):
-                    _, coeffs, terms = min(tried, key=lambda each: each[0])
+                best = min(tried, key=lambda each: each[0], default=(math.inf,))
+                if math.isfinite(best[0]):
+                    _, coeffs, terms = best
                 break
             level_start, sigma, prior_weight = done - 1, schedule[0], schedule[0] ** 2 / count
         previous = data
