@@ -177,7 +177,7 @@ def cut(
     save_model(model, out)
     report = {"output": str(out), "vertices": model.num_vertices, "faces": int(len(model.faces)),
               "modes": model.num_modes, "landmarks": 0 if model.landmarks is None else int(model.landmarks.size),
-              "regions": sorted(model.regions), "units_guess": units_guess(model.template)}
+              "regions": sorted(model.regions), "units_guess": units_guess(model.surface_template)}
     if json_out:
         print(json.dumps(report))
         return
@@ -230,7 +230,7 @@ def info(
         "model": model.source, "vertices": model.num_vertices, "faces": int(len(model.faces)),
         "modes": model.num_modes, "std_first": float(model.std[0]), "std_last": float(model.std[-1]),
         "variance_explained": _explained(model.variance_explained(), False),
-        "bbox_extent": extent.tolist(), "units_guess": units_guess(model.template),
+        "bbox_extent": extent.tolist(), "units_guess": units_guess(model.surface_template),
         "landmarks": 0 if model.landmarks is None else int(model.landmarks.size),
         "regions": {name: int(idx.size) for name, idx in model.regions.items()},
         "unread_keys": unread_npz_keys(model_path) if model_path is not None else [],

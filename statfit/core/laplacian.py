@@ -14,7 +14,8 @@ def laplacian(vertices: np.ndarray, faces: np.ndarray, kind: LaplacianKind = "un
     """Graph Laplacian D - A (``uniform``, as in Nicolet et al.) or the cotangent Laplacian, (N, N)."""
     faces = np.ascontiguousarray(faces, dtype=np.int64)
     if kind == "uniform":
-        adjacency = igl.adjacency_matrix(faces).astype(np.float64)
+        adjacency = igl.adjacency_matrix(faces).astype(np.float64).tocsr()
+        adjacency.resize((len(vertices), len(vertices)))     # the vertices past the last one a face uses: none
         adjacency.data[:] = 1.0
         degree = np.asarray(adjacency.sum(axis=1)).ravel()
         return (sp.diags(degree) - adjacency).tocsc()

@@ -139,7 +139,7 @@ class FitSpace:
            dtype: torch.dtype = torch.float32) -> "FitSpace":
         """``model``'s mean, basis and std-devs in ``frame`` (default: the template's unit frame,
         :class:`statfit.structures.frame.Frame`), as tensors on ``device``."""
-        frame = frame or Frame.of(model.template)
+        frame = frame or model.frame
 
         def as_tensor(array: np.ndarray) -> torch.Tensor:
             return torch.as_tensor(np.ascontiguousarray(array), dtype=dtype, device=device)

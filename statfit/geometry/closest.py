@@ -102,7 +102,7 @@ class ClosestPointQuery:
     (F, 3) marks the topology's border edges (:func:`open_edges`)."""
 
     def __init__(self, faces: np.ndarray, num_vertices: int, k: int = 4, device: str | torch.device = "cpu"):
-        self.k, self.num_vertices = k, num_vertices
+        self.k, self.num_vertices = min(k, num_vertices), num_vertices     # a tiny mesh: all its vertices
         self.faces = torch.as_tensor(np.asarray(faces, dtype=np.int64), device=device)
         self.open_edges = open_edges(self.faces)
         # on the host: the candidates are listed where the KD-tree query runs

@@ -26,8 +26,8 @@ def vertex_subset(model: StatModel, keep: np.ndarray, faces: np.ndarray | None =
     faces: (F', 3) triangles over the kept vertices' new indices; default: the model's triangles whose
     three corners are kept, renumbered. Landmarks are kept when all of them are (else dropped, with a
     warning: a landmark file numbers all of them), or with ``nearest_landmarks`` each moves to the
-    kept vertex nearest it on the template; regions keep their kept vertices, and a region left empty
-    is dropped."""
+    kept vertex nearest it on the template; regions keep their kept vertices, and a region left
+    without a whole triangle is dropped (with a warning)."""
     keep = np.asarray(keep, dtype=np.int64).reshape(-1)
     if keep.size < 3 or len(np.unique(keep)) != keep.size or keep.min() < 0 or keep.max() >= model.num_vertices:
         raise StatfitError(f"a model part needs 3 or more distinct vertices of the model's {model.num_vertices}")
@@ -49,7 +49,10 @@ def vertex_subset(model: StatModel, keep: np.ndarray, faces: np.ndarray | None =
             warnings.warn(f"{int((new_index[model.landmarks] < 0).sum())} of the model's {len(model.landmarks)} "
                           "landmarks lie outside the part: the part has no landmarks", StatfitWarning, stacklevel=2)
     regions = {name: new_index[index][new_index[index] >= 0] for name, index in model.regions.items()}
-    regions = {name: index for name, index in regions.items() if index.size}
+    regions = {name: index for name, index in regions.items() if np.isin(faces, index).all(axis=1).any()}
+    if lost := sorted(set(model.regions) - set(regions)):
+        warnings.warn(f"the part keeps no whole triangle of the region(s) {', '.join(lost)}: it has none of them",
+                      StatfitWarning, stacklevel=2)
     return model_from_arrays(model.template[keep], faces, shapedirs, landmarks, regions,
                              source=source or f"{model.source} (part)")
 

@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from statfit.errors import StatfitError
-from statfit.structures.frame import Frame
+from statfit.structures.frame import Frame, surface_vertices
 from statfit.io.mesh import write_atomic
 from statfit.io.npz import npz_bytes, read_npz
 
@@ -47,6 +47,17 @@ class StatModel:
     @property
     def num_modes(self) -> int:
         return self.basis.shape[1]
+
+    @property
+    def surface_template(self) -> np.ndarray:
+        """(S, 3) the template's vertices that some face uses (all N for most models): what sizes,
+        centres and units are measured on (:func:`statfit.structures.frame.surface_vertices`)."""
+        return surface_vertices(self.template, self.faces)
+
+    @property
+    def frame(self) -> Frame:
+        """The template's unit frame (its surface centred, unit RMS radius): the frame fits run in."""
+        return Frame.of(self.template, self.faces)
 
     def truncated(self, k: int) -> "StatModel":
         """The model with only its first ``k`` modes."""
@@ -94,6 +105,8 @@ def model_from_arrays(v_template: np.ndarray, faces: np.ndarray, shapedirs: np.n
     keep = s > s[0] * 1e-10
     if not keep.any():
         raise StatfitError(f"{source}: shapedirs are all zero")
+    if Frame.of(v_template, faces).scale <= 1e-12 * max(1.0, float(np.abs(v_template).max())):
+        raise StatfitError(f"{source}: the template's surface vertices all coincide: a mesh without extent")
     regions = {k: _index_array(v, n, f"{source}: region_{k}") for k, v in (regions or {}).items()}
     if landmarks is not None:
         landmarks = _index_array(landmarks, n, f"{source}: landmarks")
@@ -162,7 +175,7 @@ def region_triangles(model: StatModel, name: str) -> np.ndarray:
     """(F,) bool: the triangles whose three vertices all lie in the region ``name``."""
     mask = np.isin(model.faces, region_vertices(model, name)).all(axis=1)
     if not mask.any():
-        raise StatfitError(f"the region {name!r} contains no whole triangle")
+        raise StatfitError(f"the model's region {name!r} contains no whole triangle ({model.source})")
     return mask
 
 
@@ -180,7 +193,7 @@ def face_triangles(model: StatModel, radius: float = FACE_RADIUS) -> np.ndarray 
     if model.landmarks is None:
         return None
     nearest, _ = cKDTree(model.template[model.landmarks]).query(model.template)
-    inside = nearest < radius * Frame.of(model.template).scale
+    inside = nearest < radius * model.frame.scale
     return inside[model.faces].all(axis=1)
 
 
@@ -205,7 +218,7 @@ def scalp_triangles(model: StatModel) -> np.ndarray | None:
         anchors = model.template[model.landmarks]
     else:
         return None
-    frame = Frame.of(model.template)
+    frame = model.frame
     up, forward = model.template[:, 1], model.template[:, 2]
     above = up > anchors[:, 1].max() + SCALP_ABOVE * frame.scale
     behind = (forward < anchors[:, 2].min() - SCALP_BEHIND * frame.scale) & (up > anchors[:, 1].mean())
@@ -232,8 +245,8 @@ def default_model_path() -> Path:
 
 def _float_array(arr: np.ndarray, name: str) -> np.ndarray:
     arr = np.asarray(arr)
-    if not np.issubdtype(arr.dtype, np.number):
-        raise StatfitError(f"{name} must be numeric, got {arr.dtype}")
+    if not np.issubdtype(arr.dtype, np.number) or np.iscomplexobj(arr):
+        raise StatfitError(f"{name} must be real numbers, got {arr.dtype}")
     arr = arr.astype(np.float64)
     if not np.isfinite(arr).all():
         raise StatfitError(f"{name} contains NaN or infinite values")

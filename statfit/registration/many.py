@@ -122,7 +122,7 @@ def _fit_together(members: list[_Scan], stages: tuple[Settings, ...], weight: fl
     run_stages_together(members, stages, _scan_batch)
     for member in members:
         if not member.failed:
-            member.run = member.setup.ran(PipelineResult(member.x, member.loss, member.done))
+            member.run = member.alone(member.setup.ran, PipelineResult(member.x, member.loss, member.done))
 
 
 def _scan_batch(members: list[_Scan], settings: Settings) -> ScanBatch:

@@ -17,7 +17,7 @@ from statfit.core.methods import Fallback, fallback as method_fallback, landmark
 from statfit.core.settings import FitSpace, Settings
 from statfit.core.stages import PipelineResult, run_stages
 from statfit.core.threads import choose_threads
-from statfit.errors import StatfitError, StatfitWarning
+from statfit.errors import DivergenceError, StatfitError, StatfitWarning
 from statfit.geometry.align import Similarity
 from statfit.geometry.closest import ClosestPointQuery
 from statfit.geometry.metrics import inside_distance
@@ -29,11 +29,12 @@ from statfit.registration.hair import hair_points
 from statfit.registration.pose.hypotheses import DISTINCT_DEGREES
 from statfit.registration.pose.search import CLUTTER_MATCHED
 from statfit.registration.prealign import check_scan, prealign, present_landmarks
-from statfit.structures.frame import Frame
 from statfit.structures.scan import Scan, sample_size
 
 # Median scan-to-template distance (in model RMS radii) above which the scan is "far" from the model.
 FAR_DISTANCE = 0.25
+# A fit whose vertices lie farther than this from the scan points (median, model radii) ran away.
+RUNAWAY = 10.0
 
 
 @dataclass(frozen=True)
@@ -99,7 +100,7 @@ def model_tensors(model: StatModel, device: torch.device, dtype: torch.dtype
                   ) -> tuple[FitSpace, ClosestPointQuery]:
     """The model in the fit frame as tensors, and its closest-point query: what every fit of the
     model on ``device`` shares."""
-    return (FitSpace.of(model, Frame.of(model.template), device, dtype),
+    return (FitSpace.of(model, model.frame, device, dtype),
             ClosestPointQuery(model.faces, model.num_vertices, k=2, device=device))
 
 
@@ -121,6 +122,12 @@ class FitSetup:
         return self.scan if self.landmarks is None else WithLandmarks(self.scan, self.landmarks)
 
     def ran(self, result: PipelineResult) -> _StagesRun:
+        """The run of ``result``; raises DivergenceError for a fit that ran away (finite, but most of
+        its vertices more than RUNAWAY model radii from the scan points: a step size far too large)."""
+        reach = float((result.vertices.detach() - self.points.mean(dim=0)).norm(dim=-1).median())
+        if not reach <= RUNAWAY:
+            raise DivergenceError(f"the fit diverged: its vertices lie {reach:.3g} model radii from the scan "
+                                  "(median; step size too large?)")
         return _StagesRun(result, self.pose, self.points, self.whole_model)
 
 
@@ -148,7 +155,7 @@ class PosedScan:
         self.trim, self.refresh_every, self.clutter, self.landmarks = trim, refresh_every, clutter, landmarks
         self.region, self.region_faces = region, region_faces
         self.device, self.dtype = device, dtype
-        self.frame = frame = Frame.of(model.template)
+        self.frame = frame = model.frame
         self.space, self.query = shared or model_tensors(model, device, dtype)
         self.points = torch.as_tensor(frame.to_unit(transform.inverse_apply(points)), dtype=dtype, device=device)
         self.normals = torch.as_tensor(scan.normals @ transform.rotation, dtype=dtype, device=device)

@@ -3,18 +3,22 @@ similarity found (automatic pose search, landmarks, ICP) or taken as given."""
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from statfit.errors import StatfitError
 from statfit.geometry.align import Similarity, icp, initial_guess, umeyama
 from statfit.model.statmodel import StatModel
 from statfit.registration.pose.search import estimate_pose, refine_pose
-from statfit.structures.frame import UNIT_MISMATCH_FACTOR, Frame
+from statfit.structures.frame import UNIT_MISMATCH_FACTOR
 from statfit.structures.scan import Scan
 
 ALIGNMENTS = ("auto", "none", "rigid", "similarity")
 # No scan in any length unit (metres to micrometres) has coordinates beyond this.
 IMPLAUSIBLE_COORDINATE = 1e9
 ROBUST_ALIGNMENT_ROUNDS = 10
+# Landmarks are marked on the scan: their median distance to its nearest point beyond this many of the
+# scan's RMS radii (a head's: ~4 cm) says they are in other units or another frame.
+LANDMARK_REACH = 0.5
 
 
 def check_scan(points: np.ndarray, source: str = "scan") -> np.ndarray:
@@ -32,6 +36,10 @@ def check_scan(points: np.ndarray, source: str = "scan") -> np.ndarray:
     if largest > IMPLAUSIBLE_COORDINATE:
         raise StatfitError(f"{source} has coordinates as large as {largest:.3g}: not a scan in any length unit "
                            "(a damaged file?)")
+    spread = points - points.mean(axis=0)
+    extent = float(np.abs(spread).max())
+    if extent > 0 and np.linalg.matrix_rank(spread, tol=1e-9 * extent * np.sqrt(len(points))) < 2:
+        raise StatfitError(f"{source}'s points lie on one line: there is no surface to fit")
     return points
 
 
@@ -48,6 +56,22 @@ def present_landmarks(model: StatModel, landmarks: np.ndarray) -> np.ndarray:
     if present.sum() < 3 or np.linalg.matrix_rank(source - source.mean(axis=0), tol=1e-9 * np.ptp(source)) < 2:
         raise StatfitError(f"--landmarks needs at least 3 present, non-collinear landmarks; got {int(present.sum())}")
     return present
+
+
+def check_scan_landmarks(points: np.ndarray, landmarks: np.ndarray, present: np.ndarray) -> None:
+    """Refuse the scan's ``present`` (L,) ``landmarks`` (L, 3) where no pose can come of them: all
+    on one line (or one point), or, by their median, farther than LANDMARK_REACH of the scan's
+    ``points`` (M, 3) RMS radius from its nearest point (other units, or another scan's frame)."""
+    target = landmarks[present]
+    spread = target - target.mean(axis=0)
+    if np.linalg.matrix_rank(spread, tol=1e-9 * float(np.abs(spread).max(initial=0.0))) < 2:
+        raise StatfitError("the scan's landmarks lie on one line (or coincide): no pose can be read from them")
+    centred = points - points.mean(axis=0)
+    radius = float(np.sqrt(np.square(centred).sum(axis=1).mean()))
+    distance = float(np.median(cKDTree(points).query(target)[0]))
+    if distance > LANDMARK_REACH * radius:
+        raise StatfitError(f"the scan's landmarks lie {distance / radius:.3g} of the scan's radius from its points "
+                           "(median): are they in the scan's units and frame?")
 
 
 def landmark_alignment(model: StatModel, landmarks: np.ndarray) -> Similarity:
@@ -78,6 +102,7 @@ def prealign(model: StatModel, scan: Scan, align: str, landmarks: np.ndarray | N
         raise StatfitError(f"unknown alignment {align!r}; choose one of {', '.join(ALIGNMENTS)}")
     points = scan.points
     if landmarks is not None:
+        check_scan_landmarks(points, np.asarray(landmarks, dtype=np.float64), present_landmarks(model, landmarks))
         start = landmark_alignment(model, landmarks)
         if align == "auto":
             estimate = refine_pose(model, scan, start, seed)
@@ -87,14 +112,18 @@ def prealign(model: StatModel, scan: Scan, align: str, landmarks: np.ndarray | N
     if align == "auto":
         estimate = estimate_pose(model, scan, seed)
         return estimate.transform, estimate.summary(), estimate.coefficients
-    ratio = np.linalg.norm(np.ptp(points, axis=0)) / np.linalg.norm(np.ptp(model.template, axis=0))
+    ratio = np.linalg.norm(np.ptp(points, axis=0)) / np.linalg.norm(np.ptp(model.surface_template, axis=0))
     if align != "similarity" and not 1 / UNIT_MISMATCH_FACTOR < ratio < UNIT_MISMATCH_FACTOR:
         raise StatfitError(f"the scan is {ratio:.3g} times the model's size: are they in different units? "
                            "Rescale one, or use --align auto")
     if align == "none":
         return Similarity(), None, None
     with_scale = align == "similarity"
-    start = initial_guess(model.template, points, with_scale)
-    if not with_scale and np.linalg.norm(start.translation) < Frame.of(model.template).scale:
+    start = initial_guess(model.surface_template, points, with_scale)
+    if not with_scale and np.linalg.norm(start.translation) < model.frame.scale:
         start = Similarity()
-    return icp(model.template, model.faces, points, with_scale, start=start), None, None
+    aligned = icp(model.template, model.faces, points, with_scale, start=start)
+    if with_scale and not 1 / UNIT_MISMATCH_FACTOR < aligned.scale / start.scale < UNIT_MISMATCH_FACTOR:
+        raise StatfitError(f"the similarity alignment ran away (its scale {aligned.scale / start.scale:.3g} times the "
+                           "one the extents give): use --align auto or --landmarks")
+    return aligned, None, None

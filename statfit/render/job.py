@@ -243,7 +243,7 @@ class PosedView:
         timer = timer or StageTimer.for_device(device)
         start_shape = model.template if init is None else _checked_init(init, model)
         check_framing(start_shape, camera, normal_map.mask, align)
-        frame = Frame.of(model.template)
+        frame = model.frame
         space = FitSpace.of(model, frame, device, dtype)
         target = torch.as_tensor(camera_space_normals(normal_map, camera, normal_space, normal_convention),
                                  dtype=dtype, device=device)

@@ -129,7 +129,7 @@ def fit_views(model: StatModel, views: list[View], method: str = "default", *, p
     with intra_op_threads(threads):
         torch.manual_seed(seed)
         started = time.perf_counter()
-        frame = Frame.of(model.template)
+        frame = model.frame
         space = FitSpace.of(model, frame, torch_device, dtype)
         faces = torch.as_tensor(model.faces, dtype=torch.long, device=torch_device)
         x0 = torch.as_tensor(frame.to_unit(model.template), dtype=dtype, device=torch_device)

@@ -6,7 +6,7 @@ import numpy as np
 import trimesh
 
 from statfit.errors import StatfitError
-from statfit.structures.frame import Frame
+from statfit.structures.frame import Frame, surface_vertices
 from statfit.model.statmodel import StatModel
 from statfit.structures.camera import Camera
 
@@ -53,8 +53,9 @@ def scan_from_view(vertices: np.ndarray, faces: np.ndarray, rng: np.random.Gener
     right = np.cross([0.0, 1.0, 0.0], toward_viewer)
     right = right / np.linalg.norm(right) if np.linalg.norm(right) > 1e-8 else np.array([1.0, 0.0, 0.0])
     up = np.cross(toward_viewer, right)
-    frame = Frame.of(vertices)
-    local = (vertices - frame.center) @ np.stack([right, up]).T
+    surface = surface_vertices(vertices, faces)
+    frame = Frame.of(surface)
+    local = (surface - frame.center) @ np.stack([right, up]).T
     lo, hi = local.min(axis=0), local.max(axis=0)
     side = int(np.ceil(np.sqrt(8 * num_points)))
     a, b = np.meshgrid(np.linspace(lo[0], hi[0], side), np.linspace(lo[1], hi[1], side))
@@ -67,7 +68,7 @@ def scan_from_view(vertices: np.ndarray, faces: np.ndarray, rng: np.random.Gener
     points = points + rng.normal(scale=noise * frame.scale, size=points.shape)
     count = int(round(outliers * num_points))
     if count:
-        box_lo, box_hi = vertices.min(axis=0), vertices.max(axis=0)
+        box_lo, box_hi = surface.min(axis=0), surface.max(axis=0)
         points[rng.choice(num_points, count, replace=False)] = rng.uniform(box_lo, box_hi, size=(count, 3))
     return points
 

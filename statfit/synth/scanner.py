@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 
 from statfit.geometry.align import Similarity
 from statfit.errors import StatfitError
-from statfit.structures.frame import Frame
+from statfit.structures.frame import Frame, surface_vertices
 from statfit.synth.sample import view_direction
 
 # Length units a scan may come in, as multiples of a metre.
@@ -85,7 +85,7 @@ def neck_tube(vertices: np.ndarray, rings: int = 40, sectors: int = 72) -> trime
 def hair_layer(vertices: np.ndarray, faces: np.ndarray, rng: np.random.Generator) -> trimesh.Trimesh:
     """The shape's scalp (top and back, not the face) lifted off along its normals by a bumpy
     HAIR_THICKNESS radii: a surface a scanner sees instead of the scalp."""
-    frame = Frame.of(vertices)
+    frame = Frame.of(vertices, faces)
     u = frame.to_unit(vertices)
     scalp = ((u[:, 1] > 0.35) & (u[:, 2] < 0.35)) | ((u[:, 1] > -0.2) & (u[:, 2] < -0.45))
     keep = scalp[faces].all(axis=1)
@@ -129,12 +129,12 @@ def realistic_scan(vertices: np.ndarray, faces: np.ndarray, rng: np.random.Gener
         raise StatfitError(f"clutter must lie in [0, 2] (clutter points per shape point), got {clutter}")
     if unknown := set(clutter_parts) - set(CLUTTER_PARTS):
         raise StatfitError(f"unknown clutter part(s) {', '.join(sorted(unknown))}; choose from {', '.join(CLUTTER_PARTS)}")
-    frame = Frame.of(vertices)
+    frame = Frame.of(vertices, faces)
     parts, ids = [trimesh.Trimesh(vertices, faces, process=False)], [0]    # 0 shape, 1 hair, 2 tube
     if clutter > 0 and "hair" in clutter_parts:
         parts, ids = parts + [hair_layer(vertices, faces, rng)], ids + [1]
     if clutter > 0 and "neck" in clutter_parts:
-        parts, ids = parts + [neck_tube(vertices)], ids + [2]
+        parts, ids = parts + [neck_tube(surface_vertices(vertices, faces))], ids + [2]
     scene = trimesh.util.concatenate(parts)
     owner = np.repeat(ids, [len(p.faces) for p in parts])
 

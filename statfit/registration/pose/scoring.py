@@ -29,13 +29,15 @@ def score_poses(matcher: Matcher, points: np.ndarray, normals: np.ndarray, poses
     return capped.mean(axis=1), inlier.mean(axis=1)
 
 
-def check_plausible(matched: float, explained: float, coefficients: np.ndarray, tolerance: float) -> str | None:
+def check_plausible(matched: float, explained: float, coefficients: np.ndarray, tolerance: float,
+                    has_landmarks: bool = True) -> str | None:
     """Refuse a scan that nothing of the model matches, or only a shape far outside the model:
     fewer than MIN_MATCHED of its points near the first modes' best fit; or the best fit with every
     mode needing coefficients beyond IMPLAUSIBLE_RMS on average or IMPLAUSIBLE_COEFFICIENT in one
     mode (measured: a sphere, a plane, a shoulders tube ≥ 3.0 on average and ≥ 9.7 in one mode;
     realistic face scans with clutter ≤ 1.3 and ≤ 4.0) while explaining less than EXPLAINED of the
-    points (``explained``, the polished fit's matched share). Returns a warning for a scan the model
+    points (``explained``, the polished fit's matched share); the refusal's advice names
+    --landmarks where the model ``has_landmarks``. Returns a warning for a scan the model
     explains only with such coefficients (a person far outside the model's people), else None."""
     if matched < MIN_MATCHED:
         raise StatfitError(f"the scan does not look like the model anywhere: at best {matched:.0%} of its points lie "
@@ -47,6 +49,7 @@ def check_plausible(matched: float, explained: float, coefficients: np.ndarray, 
     if explained < EXPLAINED:
         raise StatfitError(f"the scan does not look like the model's shape: its best fit needs coefficients of "
                            f"{rms:.1f} standard deviations on average and {largest:.1f} at most, where a scan of what the model "
-                           "describes needs about 1 (if it is one, place it with --landmarks)")
+                           "describes needs about 1 (if it is one, place it with "
+                           + ("--landmarks)" if has_landmarks else "--align similarity: this model has no landmarks)"))
     return (f"the scan lies far outside the model's people: its fit needs coefficients of {rms:.1f} standard "
             f"deviations on average and {largest:.1f} at most (about 1 is usual); check the fit")

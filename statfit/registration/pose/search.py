@@ -117,7 +117,7 @@ class PoseEstimate:
 def estimate_pose(model: StatModel, scan: Scan, seed: int = 0) -> PoseEstimate:
     """The similarity that puts ``model`` onto ``scan`` (any rotation, offset and power-of-ten
     units), found without landmarks; raises StatfitError when no pose matches enough of the scan."""
-    frame = Frame.of(model.template)
+    frame = model.frame
     centroid = scan.points.mean(axis=0)
     radius = float(np.sqrt(((scan.points - centroid) ** 2).sum(axis=1).mean()))
     if radius <= 0:
@@ -173,7 +173,8 @@ def estimate_pose(model: StatModel, scan: Scan, seed: int = 0) -> PoseEstimate:
             matcher, mean, every_mode, points[polish], scan.normals[polish], in_place, move=False)
         if in_place_score <= KEEP_FRAME * polished_score:
             transform, matched, coefficients = in_place, in_place_matched, in_place_coefficients
-    if (far := check_plausible(coarse_matched, matched, coefficients, TOLERANCE * frame.scale)) is not None:
+    if (far := check_plausible(coarse_matched, matched, coefficients, TOLERANCE * frame.scale,
+                                  model.landmarks is not None)) is not None:
         warnings.warn(far, StatfitWarning, stacklevel=2)
     return PoseEstimate(to_scan_frame(transform, frame, centroid, units), coarse_score, matched, runner_up, units,
                         coefficients)
@@ -186,7 +187,7 @@ def refine_pose(model: StatModel, scan: Scan, start: Similarity, seed: int = 0) 
     part of a face tilt their similarity by degrees and scale it by ±10%, which no fit of the
     model's modes can undo (docs/studies.md §15: half a face, 10° and 20 mm held-out error). The
     estimate's ``score`` is the polished pose's and ``runner_up`` 1 (no other pose is searched)."""
-    frame = Frame.of(model.template)
+    frame = model.frame
     centroid = scan.points.mean(axis=0)
     units = float(10.0 ** np.round(np.log10(start.scale)))
     points = (scan.points - centroid) / (units * frame.scale)

@@ -1,0 +1,157 @@
+"""Odd but parseable models, scans and landmarks (a fuzz of the CLI, 2026-11-28): each either fits
+as its well-formed equivalent does, or is refused in one line with exit 2 and nothing written."""
+from __future__ import annotations
+
+import warnings
+
+import igl
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from conftest import run_cli
+from statfit.core.laplacian import laplacian
+from statfit.errors import StatfitError, StatfitWarning
+from statfit.geometry.closest import ClosestPointQuery
+from statfit.model.cut import decimated
+from statfit.model.statmodel import default_model_path, load_model, model_arrays, model_from_arrays
+from statfit.registration.pose.scoring import check_plausible
+
+SPARE = 100     # unreferenced vertices added far from the head
+
+
+@pytest.fixture(scope="module")
+def head_scan(tmp_path_factory):
+    """The embedded head's synthetic scan and its ground truth (the model's topology)."""
+    folder = tmp_path_factory.mktemp("odd")
+    scan, gt = folder / "scan.ply", folder / "gt.ply"
+    assert run_cli(["synth", "scan", "--seed", "5", "--out", str(scan), "--gt", str(gt)])[0] == 0
+    return folder, scan, gt
+
+
+def _refused(argv: list[str], out) -> str:
+    code, err = run_cli(argv + ["--out", str(out), "-q"])
+    assert code == 2 and err.count("\n") == 1 and err.startswith("statfit: error:"), (code, err)
+    assert not out.exists()
+    return err
+
+
+def _with_spare_vertices(path) -> None:
+    """The embedded model plus SPARE vertices no face uses, 1,000 model radii away, without modes."""
+    arrays = model_arrays(load_model(default_model_path()))
+    spare = np.random.default_rng(0).normal(size=(SPARE, 3)) + 1000.0
+    arrays["v_template"] = np.concatenate([arrays["v_template"], spare])
+    arrays["shapedirs"] = np.concatenate([arrays["shapedirs"], np.zeros((SPARE, 3, arrays["shapedirs"].shape[2]))])
+    np.savez(path, **arrays)
+
+
+def test_vertices_no_face_uses_change_nothing(head_scan):
+    """A model with spare vertices far away fits the scan as the model without them does (the same
+    vertices to float32 rounding), with the spare ones left where the template has them: sizes,
+    units and the pose are measured on the surface, and the Laplacian gives them no neighbours."""
+    folder, scan, _ = head_scan
+    spare_model = folder / "spare.npz"
+    _with_spare_vertices(spare_model)
+    fits = {}
+    for name, model in (("plain", default_model_path()), ("spare", spare_model)):
+        out = folder / f"{name}.ply"
+        code, err = run_cli(["register", str(scan), "--model", str(model), "--out", str(out), "-q"])
+        assert code == 0, err
+        fits[name] = trimesh.load(out, process=False).vertices
+    plain, spare = fits["plain"], fits["spare"]
+    size = np.ptp(plain, axis=0).max()
+    assert np.abs(spare[:len(plain)] - plain).max() < 1e-5 * size
+    assert np.abs(spare[len(plain):] - np.load(spare_model)["v_template"][len(plain):]).max() < 1e-4 * 1000
+
+
+def test_the_uniform_laplacian_has_a_row_for_every_vertex():
+    """Vertices past the last one a face uses get empty rows (a Laplacian the size of the mesh)."""
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    matrix = laplacian(np.zeros((6, 3)), faces).toarray()
+    expected = np.zeros((6, 6))
+    for a, b in ((0, 1), (1, 2), (2, 0), (2, 3), (3, 0)):
+        expected[a, b] = expected[b, a] = -1.0
+    np.fill_diagonal(expected, -expected.sum(axis=1))
+    np.testing.assert_array_equal(matrix, expected)
+
+
+def test_a_template_without_extent_and_complex_modes_are_refused():
+    model = load_model(default_model_path())
+    shapedirs = (model.basis * model.std).reshape(model.num_vertices, 3, -1)
+    with pytest.raises(StatfitError, match="all coincide"):
+        model_from_arrays(np.ones_like(model.template), model.faces, shapedirs)
+    with pytest.raises(StatfitError, match="must be real numbers"):
+        model_from_arrays(model.template, model.faces, shapedirs.astype(np.complex64))
+
+
+def test_the_closest_points_of_a_mesh_with_fewer_vertices_than_neighbours_asked():
+    """A tetrahedron (4 vertices) queried with 12 nearest vertices: the closest points are a brute
+    force's over its four triangles."""
+    vertices = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    points = np.random.default_rng(1).normal(size=(50, 3))
+    found = ClosestPointQuery(faces, 4, k=12)(torch.as_tensor(vertices), torch.as_tensor(points))
+    squared, _, _ = igl.point_mesh_squared_distance(points, vertices, faces)
+    np.testing.assert_allclose(found.distance.numpy(), np.sqrt(squared), atol=1e-9)
+
+
+@pytest.mark.parametrize("case", ["collinear", "coincident", "a million times too large"])
+def test_landmarks_no_pose_can_come_of_are_refused(head_scan, case, tmp_path):
+    _, scan, gt = head_scan
+    model = load_model(default_model_path())
+    marks = trimesh.load(gt, process=False).vertices[model.landmarks]
+    if case == "collinear":
+        marks = marks[0] + np.linspace(0.0, 1.0, len(marks))[:, None] * (marks[1] - marks[0])
+    elif case == "coincident":
+        marks = np.repeat(marks[:1], len(marks), axis=0)
+    else:
+        marks = marks * 1e6
+    path = tmp_path / "marks.txt"
+    np.savetxt(path, marks)
+    err = _refused(["register", str(scan), "--landmarks", str(path)], tmp_path / "fit.ply")
+    assert ("one line" in err) if case != "a million times too large" else ("units" in err)
+
+
+def test_the_true_landmarks_still_place_the_fit(head_scan, tmp_path):
+    _, scan, gt = head_scan
+    marks = trimesh.load(gt, process=False).vertices[load_model(default_model_path()).landmarks]
+    np.savetxt(tmp_path / "marks.txt", marks)
+    code, err = run_cli(["register", str(scan), "--landmarks", str(tmp_path / "marks.txt"),
+                         "--out", str(tmp_path / "fit.ply"), "-q"])
+    assert code == 0, err
+
+
+def test_a_fit_that_runs_away_is_refused(head_scan, tmp_path):
+    """A step size far too large grows the mesh by orders of magnitude while staying finite."""
+    _, scan, _ = head_scan
+    err = _refused(["register", str(scan), "--method", "none", "--lr", "10"], tmp_path / "fit.ply")
+    assert "diverged" in err
+
+
+def test_scans_a_similarity_cannot_hold_are_refused(tmp_path):
+    """A flat sheet of points the size of a head and points on one line: the similarity ICP shrinks
+    the model onto them (×75–80 measured) or there is no surface at all."""
+    rng = np.random.default_rng(2)
+    sheet = np.c_[rng.uniform(-0.1, 0.1, (500, 2)), np.zeros(500)]
+    line = np.outer(np.linspace(-0.1, 0.1, 50), [1.0, 0.5, 0.2])
+    for name, points in (("sheet", sheet), ("line", line)):
+        path = tmp_path / f"{name}.ply"
+        trimesh.PointCloud(points).export(path)
+        _refused(["register", str(path), "--align", "similarity"], tmp_path / f"{name}-fit.ply")
+
+
+def test_a_cut_that_leaves_a_region_no_triangle_drops_it():
+    model = load_model(default_model_path())
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        part = decimated(model, 10)
+    assert "face" not in part.regions
+    assert any(issubclass(w.category, StatfitWarning) and "region(s) face" in str(w.message) for w in caught)
+
+
+def test_the_refusal_advises_only_what_the_model_allows():
+    far = np.full(5, 9.0)
+    for has_landmarks, advice in ((True, "--landmarks"), (False, "--align similarity")):
+        with pytest.raises(StatfitError, match=advice):
+            check_plausible(0.9, 0.1, far, 0.01, has_landmarks)
