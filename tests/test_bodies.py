@@ -226,8 +226,11 @@ def test_the_default_is_closer_than_laplacian_seen_and_unseen(study_fits):
     """Issue 14's target on one of its bodies: the render default (two hybrid stages, then the
     Laplacian filter, from the alignment's fitted coefficients) is closer to the truth than
     `laplacian` at its own tuned setting, over all vertices and over those the map does not show
-    (study: lower on all six bodies, 10.2 mm against 10.8; here, at 160², 17.2 against 20.7 and
-    18.2 against 22.0; docs/studies.md §13)."""
+    (study: lower on all six bodies, 10.2 mm against 10.8, 0.94×; docs/studies.md §13). Here, at
+    160², measured 2026-11-28: 20.1 against 22.0 and 21.2 against 23.1 mm (0.92×); with
+    OMP_NUM_THREADS=1 the model's randomised SVD sums in another order and the fits end elsewhere:
+    11.8 against 12.5 and 12.6 against 13.2 (0.94–0.95×). So the bound is the study's claim, lower,
+    not a margin tighter than the study's own mean gap."""
     default, laplacian = study_fits["default"]["aligned"], study_fits["laplacian"]["aligned"]
-    assert default["all"] < 0.95 * laplacian["all"], (default, laplacian)
-    assert default["unseen"] < 0.95 * laplacian["unseen"], (default, laplacian)
+    assert default["all"] < laplacian["all"], (default, laplacian)
+    assert default["unseen"] < laplacian["unseen"], (default, laplacian)

@@ -76,13 +76,16 @@ def test_the_uniform_laplacian_has_a_row_for_every_vertex():
     np.testing.assert_array_equal(matrix, expected)
 
 
-def test_a_template_without_extent_and_complex_modes_are_refused():
+def test_a_template_without_extent_complex_modes_and_absurd_modes_are_refused():
     model = load_model(default_model_path())
     shapedirs = (model.basis * model.std).reshape(model.num_vertices, 3, -1)
     with pytest.raises(StatfitError, match="all coincide"):
         model_from_arrays(np.ones_like(model.template), model.faces, shapedirs)
     with pytest.raises(StatfitError, match="must be real numbers"):
         model_from_arrays(model.template, model.faces, shapedirs.astype(np.complex64))
+    with pytest.raises(StatfitError, match="per standard deviation"):
+        model_from_arrays(model.template, model.faces, shapedirs * 1e6)
+    model_from_arrays(model.template, model.faces, shapedirs * 1e3)      # large, still a population
 
 
 def test_the_closest_points_of_a_mesh_with_fewer_vertices_than_neighbours_asked():

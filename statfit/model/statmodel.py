@@ -81,6 +81,11 @@ class StatModel:
         return np.cumsum(var) / var.sum()
 
 
+# A mode moving the template's vertices (RMS) by more than this many of its RMS radii per standard
+# deviation describes no population of shapes (the embedded head's first mode: 0.05).
+IMPLAUSIBLE_MODE = 1e3
+
+
 def model_from_arrays(v_template: np.ndarray, faces: np.ndarray, shapedirs: np.ndarray,
                       landmarks: np.ndarray | None = None,
                       regions: dict[str, np.ndarray] | None = None,
@@ -105,8 +110,13 @@ def model_from_arrays(v_template: np.ndarray, faces: np.ndarray, shapedirs: np.n
     keep = s > s[0] * 1e-10
     if not keep.any():
         raise StatfitError(f"{source}: shapedirs are all zero")
-    if Frame.of(v_template, faces).scale <= 1e-12 * max(1.0, float(np.abs(v_template).max())):
+    scale = Frame.of(v_template, faces).scale
+    if scale <= 1e-12 * max(1.0, float(np.abs(v_template).max())):
         raise StatfitError(f"{source}: the template's surface vertices all coincide: a mesh without extent")
+    if (move := float(s[0]) / np.sqrt(n)) > IMPLAUSIBLE_MODE * scale:      # the vertices' RMS move
+        raise StatfitError(f"{source}: the first mode moves the template's vertices by {move / scale:.3g} of its RMS "
+                           "radius per standard deviation: shapedirs are per standard deviation (people differ by a "
+                           "fraction of it)")
     regions = {k: _index_array(v, n, f"{source}: region_{k}") for k, v in (regions or {}).items()}
     if landmarks is not None:
         landmarks = _index_array(landmarks, n, f"{source}: landmarks")
