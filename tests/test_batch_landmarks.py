@@ -22,16 +22,16 @@ FAST = ["--iterations", "60", "--workers", "1", "-q"]
 @pytest.fixture(scope="module")
 def scans(tmp_path_factory, embedded_model) -> Path:
     """Three posed millimetre scans of embedded-model people (no clutter), each with its true
-    landmarks (1 mm noise) beside it as <scan>.txt, except the third."""
+    landmarks (1 mm noise) beside it as <scan>.txt, except the third (its are <scan>-later.txt: a
+    file a test adds later)."""
     root = tmp_path_factory.mktemp("landmarked")
     for index in range(3):
         rng = np.random.default_rng(20 + index)
         made = realistic_scan(embedded_model.sample(rng), embedded_model.faces, rng, points=1500, clutter=0.0,
                               holes=0, units="mm")
         trimesh.Trimesh(made.vertices, made.faces, process=False).export(root / f"scan{index}.ply")
-        if index < 2:
-            noisy = made.truth[embedded_model.landmarks] + rng.normal(scale=1.0, size=(embedded_model.landmarks.size, 3))
-            (root / f"scan{index}.txt").write_text(landmarks_text(noisy))
+        noisy = made.truth[embedded_model.landmarks] + rng.normal(scale=1.0, size=(embedded_model.landmarks.size, 3))
+        (root / (f"scan{index}.txt" if index < 2 else f"scan{index}-later.txt")).write_text(landmarks_text(noisy))
     return root
 
 
@@ -80,7 +80,7 @@ def test_a_changed_or_added_landmarks_file_is_fitted_again_and_only_it(scans, tm
     rows = np.loadtxt(copied / "scan1.txt")
     rows[0] += 5.0
     (copied / "scan1.txt").write_text(landmarks_text(rows))
-    (copied / "scan2.txt").write_text((copied / "scan0.txt").read_text())
+    (copied / "scan2.txt").write_text((copied / "scan2-later.txt").read_text())
     assert run_cli(command)[0] == 0
     refitted = [Path(r["input"]).name for r in read_rows(out / MANIFEST_NAME) if r["event"] == "fit"][3:]
     assert sorted(refitted) == ["scan1.ply", "scan2.ply"]  # scan0 was done with the same files
