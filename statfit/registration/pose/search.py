@@ -16,9 +16,12 @@ back to front, turned by 90°). So:
 4. **The best few** (distinct by ≥ DISTINCT_DEGREES) are refined against the mean *and its first
    modes*: ICP alternates with a Gauss–Newton solve for REFINE_MODES coefficients, so a face
    wider or longer than the mean does not pull the pose.
-5. **Polish.** The best pose is refined once more against every mode, trimming as the fit does
-   (OUTLIER_SIGMAS), on more points: a pose the first modes could not explain is what the fit,
-   which cannot turn the model, would keep. Hair would tilt it: the modes bulge the head towards a
+5. **Polish.** Each refined pose is refined once more against every mode at the units' scale,
+   trimming as the fit does (OUTLIER_SIGMAS), on more points; the refinement's best goes on unless
+   another polishes POLISHED_SWITCH times better: a pose the first modes could not explain is what
+   the fit, which cannot turn the model, would keep, and the refinement's free scale can stretch a
+   model over what it does not describe (a face mask over a head scan's side scored 0.64 there
+   against 0.73 where it belongs; polished, 0.76 against 0.55). Hair would tilt it: the modes bulge the head towards a
    surface 5–9 mm over the scalp. So, for a model with a face (a ``face`` region or landmarks),
    the polish runs three times: on the whole head; then where hair cannot reach — on the face
    alone (around its landmarks, POSE_FACE_RADIUS), or, when the first pass left more than
@@ -27,7 +30,7 @@ back to front, turned by 90°). So:
    hairline, a longer lever for the head's tilt than the face alone); and last on every point
    except those lying :data:`statfit.registration.hair.HAIR_OFFSET` beyond the second pass's scalp and, with
    clutter, those on the scalp.
-6. **Score**: a truncated residual — each point's squared distance capped at TOLERANCE², a point
+6. **Score** (the refinement's; the polish's where it overruled): a truncated residual — each point's squared distance capped at TOLERANCE², a point
    whose normal disagrees counting as the cap — over the cap: 0 is a perfect fit, 1 nothing
    matched. The runner-up (another pose ≥ DISTINCT_DEGREES away) within AMBIGUITY of the best
    marks the result ambiguous; too few matched points, or a fit that needs implausible
@@ -82,6 +85,11 @@ NEAR_OFFSET = 0.5          # ... and is polished to see whether it does only whe
 # second pass now fits everything but the scalp region instead: 0.58°.)
 POSE_FACE_RADIUS = 0.25
 LEAD_SUBSAMPLE = 1500      # points of the two polishes that find the face (as good as 3,000 on §16's scans)
+# The refinement's best pose gives way to another only where that one polishes this much better: poses
+# far apart often polish to within a few per cent of each other (a half face, another family's model),
+# and such a near tie is no ground to move. (1.25: the face cut of the embedded head on its own head
+# scan 1.47; §17's cross-family half scans whose choice flipped: 1.01-1.36; docs/studies.md §33.)
+POLISHED_SWITCH = 1.25
 AMBIGUITY = 1.15           # runner-up score within this factor of the best: ambiguous
 FACING_MIN = -0.25         # cos between the model's face direction (+z) and the scan's mean normal
 
@@ -145,17 +153,27 @@ def estimate_pose(model: StatModel, scan: Scan, seed: int = 0) -> PoseEstimate:
     std = torch.as_tensor(model.std[:REFINE_MODES] / frame.scale)
     refined = [refine_with_first_modes(matcher, mean, basis_t, std, points[many], scan.normals[many], poses.pick(i),
                                        bounds) for i in candidates]
-    best = int(np.argmin([score for _, score, _ in refined]))
-    coarse_pose, coarse_score, coarse_matched = refined[best]
-    others = [score for index, (pose, score, _) in enumerate(refined)
-              if index != best and angle_between(pose.rotation, coarse_pose.rotation) >= DISTINCT_DEGREES]
-    runner_up = min(others, default=1.0)
     every_mode = scaled_modes(model, frame)
     polish = rng.choice(len(points), min(POLISH_SUBSAMPLE, len(points)), replace=False)
+    lead = polish[:LEAD_SUBSAMPLE]
+    # Each refined pose polished at the units' scale with every mode (step 5's first pass): the
+    # refinement's free scale can stretch a model over what it does not describe (a face mask over a
+    # head scan's sides) and score better there than where it belongs.
+    leads = [polish_pose(matcher, mean, every_mode, points[lead], scan.normals[lead], pose) for pose, _, _ in refined]
+    best = int(np.argmin([score for _, score, _ in refined]))
+    polished = int(np.argmin([score for _, score, _, _ in leads]))
+    # The deciding scores: the refinement's, or the polish's where it overrules a near tie's keeper.
+    deciding = [score for _, score, _ in refined]
+    if leads[best][1] > POLISHED_SWITCH * leads[polished][1]:
+        best, deciding = polished, [score for _, score, _, _ in leads]
+    coarse_pose, coarse_score = refined[best][0], deciding[best]
+    coarse_matched = max(matched for _, _, matched in refined)      # "at best, in any pose": for the refusal
+    others = [deciding[index] for index, (pose, _, _) in enumerate(refined)
+              if index != best and angle_between(pose.rotation, coarse_pose.rotation) >= DISTINCT_DEGREES]
+    runner_up = min(others, default=1.0)
     start, hair = coarse_pose, None
     if (face := face_triangles(model, POSE_FACE_RADIUS)) is not None:   # step 5: head, face, all but hair
-        lead = polish[:LEAD_SUBSAMPLE]
-        start, _, head_matched, _ = polish_pose(matcher, mean, every_mode, points[lead], scan.normals[lead], start)
+        start, _, head_matched, _ = leads[best]
         scalp = scalp_triangles(model) if head_matched < CLUTTER_MATCHED else None    # clutter: hair can be there
         start, _, _, face_fit = polish_pose(matcher, mean, every_mode, points[lead], scan.normals[lead], start,
                                         region=face if scalp is None else ~scalp)
