@@ -2,7 +2,9 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import typer
@@ -66,7 +68,7 @@ def evaluate(
     report = evaluate_fit(fit_vertices, gt_vertices, faces, observed, _region_mask(model_path, region, len(fit_vertices)),
                           fields.get("off_span"))
     if json_out:
-        print(json.dumps(report))
+        print(json.dumps(_json_numbers(report), allow_nan=False))
         return
     units = units_guess(gt_vertices)
     to_mm = MILLIMETRES_PER_UNIT.get(units.split()[0])
@@ -101,3 +103,15 @@ def _region_mask(model_path: Path | None, region: str | None, num_vertices: int)
 def _seen_vertices(vertices: np.ndarray, faces: np.ndarray, normals: Path, camera_path: Path | None) -> np.ndarray:
     normal_map = read_normal_map(normals)
     return visible_vertices(vertices, faces, camera_for_map(normal_map, camera_path, normals), normal_map.mask)
+
+
+def _json_numbers(value: Any) -> Any:
+    """``value`` with NaN and infinite floats as None (JSON has no NaN: a row with no vertices, a
+    ground truth without extent), nested dicts and lists included."""
+    if isinstance(value, dict):
+        return {key: _json_numbers(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_numbers(item) for item in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value

@@ -209,6 +209,7 @@ def sample(
     if not np.isfinite(sigma) or sigma < 0:
         raise StatfitError("--sigma must be a finite number ≥ 0")
     check_writable(out)
+    mesh_format(out)
     model = open_model(model_path, k)
     if params is not None:
         vertices = posed_shape(model, read_params(params, model))

@@ -99,6 +99,7 @@ def register(
     for path in (target, log, params):
         if path is not None:
             check_writable(path)
+    mesh_format(target)
     if scan != "-":
         existing_file(scan, "scan")
     model = open_model(model_path, k)

@@ -97,6 +97,7 @@ def render(
     for target in (out, log, preview, params):
         if target is not None:
             check_writable(target)
+    mesh_format(out)
     normal_map = read_normal_map(normal_map_path)
     if mask is not None:
         normal_map = apply_mask(normal_map, read_mask(mask), str(mask))

@@ -103,6 +103,8 @@ def scan(
     for target in (out, gt, landmarks_out):
         if target is not None:
             check_writable(target)
+    if gt is not None:
+        mesh_format(gt)
     check_delta_options(delta, delta_name)
     model = open_model(model_path)
     if landmarks_out is not None and model.landmarks is None:
@@ -154,6 +156,8 @@ def normals(
     for target in (out, camera_out, gt):
         if target is not None:
             check_writable(target)
+    if gt is not None:
+        mesh_format(gt)
     model = open_model(model_path)
     if shape_path is None:
         shape = _target(model, np.random.default_rng(seed), sigma, delta, delta_name, delta_weight)
@@ -191,6 +195,7 @@ def body(
         statfit synth normals --model body.npz --shape person.ply --yaw 30 --size 768 --out body.exr --camera-out cam.json
     """
     check_writable(out)
+    mesh_format(out)
     with count_bar("reading MakeHuman's morph targets", not quiet) as advance:
         space = BodySpace(read_makehuman(folder, advance))
     weights = space.weights(np.random.default_rng(seed), 1, "held_out" if held_out else "train")

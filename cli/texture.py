@@ -25,7 +25,10 @@ def image_files(inputs: list[str]) -> list[Path]:
     for item in inputs:
         path = Path(item)
         if path.is_dir():
-            files += sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+            images = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+            if not images:
+                raise StatfitError(f"no image in the folder {path} (looked for {', '.join(sorted(IMAGE_SUFFIXES))})")
+            files += images
         elif path.exists() or not glob.has_magic(item):
             files.append(path)
         else:

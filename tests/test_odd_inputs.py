@@ -158,3 +158,55 @@ def test_the_refusal_advises_only_what_the_model_allows():
     for has_landmarks, advice in ((True, "--landmarks"), (False, "--align similarity")):
         with pytest.raises(StatfitError, match=advice):
             check_plausible(0.9, 0.1, far, 0.01, has_landmarks)
+
+
+def test_a_face_cut_of_the_head_is_placed_on_a_scan_of_the_whole_head(head_scan):
+    """The embedded head's face region as a model of its own, and a scan of the head's side: the
+    pose search's refinement (scale free) scored the mask stretched over the head's side better
+    than where it belongs; each refined pose polished at the units' scale puts it back (the
+    scan is in the model's frame: the true pose is the identity)."""
+    from statfit.io.mesh import load_scan
+    from statfit.model.cut import region_part
+    from statfit.registration.pose.hypotheses import angle_between
+    from statfit.registration.pose.search import estimate_pose
+
+    _, scan, _ = head_scan
+    mask = region_part(load_model(default_model_path()), "face")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", StatfitWarning)
+        pose = estimate_pose(mask, load_scan(str(scan))).transform
+    assert angle_between(pose.rotation, np.eye(3)) < 5.0
+    assert np.linalg.norm(pose.translation) < 0.05 * mask.frame.scale * 10
+
+
+def test_a_mesh_is_written_only_as_ply_or_obj(head_scan, tmp_path):
+    """A .stl target used to receive PLY bytes (no STL reader opens them): refused before any work."""
+    _, scan, _ = head_scan
+    for argv in (["register", str(scan), "-q"], ["model", "sample"]):
+        code, err = run_cli(argv + ["--out", str(tmp_path / "fit.stl")])
+        assert code == 2 and err.count("\n") == 1 and ".ply or .obj" in err, err
+        assert not (tmp_path / "fit.stl").exists()
+
+
+def test_a_texture_model_from_a_folder_without_images_is_refused(tmp_path):
+    (tmp_path / "images").mkdir()
+    code, err = run_cli(["model", "build-texture", str(tmp_path / "images"), "-o", str(tmp_path / "t.npz"), "-q"])
+    assert code == 2 and "no image in the folder" in err and err.count("\n") == 1
+    assert not (tmp_path / "t.npz").exists()
+
+
+def test_evaluation_json_is_json_when_a_row_has_no_vertices(head_scan, tmp_path, capsys):
+    """A scan that covers no ground-truth vertex leaves the 'unobserved' row empty: its mean is
+    NaN, which JSON cannot hold; it is written as null (a strict parser reads the output)."""
+    import json
+
+    from statfit_cli.main import main
+
+    _, scan, gt = head_scan
+    far = tmp_path / "far.ply"
+    trimesh.PointCloud(trimesh.load(gt, process=False).vertices + 1e3).export(far)
+    with pytest.raises(SystemExit) as done:
+        main(["eval", str(gt), str(gt), "--scan", str(far), "--json"])
+    assert done.value.code in (0, None)
+    report = json.loads(capsys.readouterr().out, parse_constant=lambda name: pytest.fail(f"{name} in the JSON"))
+    assert report["observed"]["count"] == 0 and report["observed"]["mean"] is None

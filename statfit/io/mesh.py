@@ -188,8 +188,12 @@ def write_atomic(target: str | Path, data: bytes) -> None:
 
 
 def mesh_format(target: str | Path) -> str:
-    """``obj`` for a .obj path, else ``ply`` (also for stdout)."""
-    return "obj" if Path(str(target)).suffix.lower() == ".obj" else "ply"
+    """``obj`` for a .obj path, else ``ply`` (a .ply path, one without a suffix, stdout); a path with
+    another suffix is refused (PLY bytes in a file named .stl open nowhere)."""
+    suffix = "" if str(target) == "-" else Path(str(target)).suffix.lower()
+    if suffix not in ("", ".ply", ".obj"):
+        raise StatfitError(f"{target}: meshes are written as .ply or .obj, not {suffix}")
+    return "obj" if suffix == ".obj" else "ply"
 
 
 def check_writable(target: str | Path) -> None:
