@@ -63,7 +63,8 @@ def _fit(key: tuple, switch: float) -> tuple[dict, list, list]:
         return out
 
     with mock.patch.object(search, "refine_with_first_modes", refine_logged), \
-            mock.patch.object(search, "polish_pose", polish_logged), mock.patch.object(search, "POLISHED_SWITCH", switch):
+            mock.patch.object(search, "polish_pose", polish_logged), \
+            mock.patch.object(search, "POLISHED_SWITCH", switch):
         try:
             row = fit_case(*key, "default")
             result = {"held": row["held"]}
@@ -111,7 +112,8 @@ def report(rows: list[dict]) -> str:
     lines = ["§17's half scans without landmarks: the default under each choice of the refined pose; held-out mm "
              "over the cases every variant fitted; refused: the pose search's refusals; changed: the cases whose "
              "kept candidate differs from `refined`'s, and among them those lower / higher by over 2%.", "",
-             "| people | cases | variant | held-out mean | refused | changed | lower | higher |", "|---|---|---|---|---|---|---|---|"]
+             "| people | cases | variant | held-out mean | refused | changed | lower | higher |",
+             "|---|---|---|---|---|---|---|---|"]
     for label, seeds in (("§17's (chosen on)", CHOSEN_ON), ("new (checked on)", CHECKED_ON)):
         chosen = [row for row in rows if row["seed"] in seeds]
         fitted = [row for row in chosen if all("held" in row[v] for v in SWITCH)]
@@ -125,7 +127,8 @@ def report(rows: list[dict]) -> str:
             refused = sum(1 for row in chosen if "error" in row[variant])
             lines.append(f"| {label} | {len(chosen)} ({len(fitted)} fitted by all) | {variant} | "
                          f"{sum(held) / max(len(held), 1):.3f} | {refused} | {len(changed)} | {lower} | {higher} |")
-    lines += ["", "The changed cases (held-out mm or refused, per variant; the candidates' refined and polished scores):", "",
+    lines += ["", "The changed cases (held-out mm or refused, per variant; the candidates' refined and polished "
+              "scores):", "",
               "| people | model | seed | half | refined | shipped | polished | refined scores | polished scores |",
               "|---|---|---|---|---|---|---|---|---|"]
     show = lambda result: f"{result['held']:.2f}" if "held" in result else "refused"  # noqa: E731

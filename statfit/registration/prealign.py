@@ -37,8 +37,8 @@ def check_scan(points: np.ndarray, source: str = "scan") -> np.ndarray:
         raise StatfitError(f"{source} has coordinates as large as {largest:.3g}: not a scan in any length unit "
                            "(a damaged file?)")
     spread = points - points.mean(axis=0)
-    extent = float(np.abs(spread).max())
-    if extent > 0 and np.linalg.matrix_rank(spread, tol=1e-9 * extent * np.sqrt(len(points))) < 2:
+    widths = np.sqrt(np.clip(np.linalg.eigvalsh(spread.T @ spread), 0.0, None))    # ascending; a 3 × 3 solve
+    if widths[2] > 0 and widths[1] <= 1e-6 * widths[2]:
         raise StatfitError(f"{source}'s points lie on one line: there is no surface to fit")
     return points
 

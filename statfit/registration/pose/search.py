@@ -21,8 +21,8 @@ back to front, turned by 90°). So:
    another polishes POLISHED_SWITCH times better: a pose the first modes could not explain is what
    the fit, which cannot turn the model, would keep, and the refinement's free scale can stretch a
    model over what it does not describe (a face mask over a head scan's side scored 0.64 there
-   against 0.73 where it belongs; polished, 0.76 against 0.55). Hair would tilt it: the modes bulge the head towards a
-   surface 5–9 mm over the scalp. So, for a model with a face (a ``face`` region or landmarks),
+   against 0.73 where it belongs; polished, 0.76 against 0.55). Hair would tilt it: the modes
+   bulge the head towards a surface 5–9 mm over the scalp. So, for a model with a face (a ``face`` region or landmarks),
    the polish runs three times: on the whole head; then where hair cannot reach — on the face
    alone (around its landmarks, POSE_FACE_RADIUS), or, when the first pass left more than
    1 − CLUTTER_MATCHED of the points unexplained (clutter), on everything but the scalp
@@ -30,8 +30,9 @@ back to front, turned by 90°). So:
    hairline, a longer lever for the head's tilt than the face alone); and last on every point
    except those lying :data:`statfit.registration.hair.HAIR_OFFSET` beyond the second pass's scalp and, with
    clutter, those on the scalp.
-6. **Score** (the refinement's; the polish's where it overruled): a truncated residual — each point's squared distance capped at TOLERANCE², a point
-   whose normal disagrees counting as the cap — over the cap: 0 is a perfect fit, 1 nothing
+6. **Score** (the refinement's; the polish's where it overruled): a truncated residual — each
+   point's squared distance capped at TOLERANCE², a point whose normal disagrees counting as the
+   cap — over the cap: 0 is a perfect fit, 1 nothing
    matched. The runner-up (another pose ≥ DISTINCT_DEGREES away) within AMBIGUITY of the best
    marks the result ambiguous; too few matched points, or a fit that needs implausible
    coefficients (a sphere, a plane), refuse the scan. A scan that already lies on
