@@ -210,3 +210,20 @@ def test_evaluation_json_is_json_when_a_row_has_no_vertices(head_scan, tmp_path,
     assert done.value.code in (0, None)
     report = json.loads(capsys.readouterr().out, parse_constant=lambda name: pytest.fail(f"{name} in the JSON"))
     assert report["observed"]["count"] == 0 and report["observed"]["mean"] is None
+
+
+def test_a_params_file_with_no_persons_coefficients_is_refused(head_scan, tmp_path):
+    """A params file whose coefficients are 1e30 standard deviations used to give a mesh 1e28 across."""
+    import json
+
+    _, scan, _ = head_scan
+    params = tmp_path / "p.json"
+    code, err = run_cli(["register", str(scan), "--out", str(tmp_path / "fit.ply"), "--params", str(params), "-q"])
+    assert code == 0, err
+    assert run_cli(["model", "sample", "--params", str(params), "--out", str(tmp_path / "ok.ply")])[0] == 0
+    record = json.loads(params.read_text())
+    record["coefficients"] = [1e30] * len(record["coefficients"])
+    params.write_text(json.dumps(record))
+    code, err = run_cli(["model", "sample", "--params", str(params), "--out", str(tmp_path / "sample.ply")])
+    assert code == 2 and err.count("\n") == 1 and "describes no person" in err, err
+    assert not (tmp_path / "sample.ply").exists()

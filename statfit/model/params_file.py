@@ -22,6 +22,8 @@ FORMAT, VERSION = "statfit-params", 1
 SUFFIXES = (".json", ".npz")
 MAX_BYTES = 64 << 20
 ROTATION_TOLERANCE = 1e-6
+# Coefficients (standard deviations) beyond this are no person's: a damaged or foreign file.
+IMPLAUSIBLE_COEFFICIENT = 1e3
 
 
 def params_suffix(path: str | Path) -> str:
@@ -89,6 +91,9 @@ def read_params(path: str | Path, model: StatModel) -> Projection:
     coefficients = _numbers(record.get("coefficients"), (model.num_modes,), path, "coefficients")
     if not scale > 0:
         raise StatfitError(f"{path}: similarity.scale must be positive, got {float(scale):g}")
+    if (largest := float(np.abs(coefficients).max(initial=0.0))) > IMPLAUSIBLE_COEFFICIENT:
+        raise StatfitError(f"{path}: a coefficient of {largest:.3g} standard deviations describes no person "
+                           f"(fits of people far outside a model reach tens; the limit is {IMPLAUSIBLE_COEFFICIENT:g})")
     if (np.abs(rotation @ rotation.T - np.eye(3)).max() > ROTATION_TOLERANCE
             or abs(np.linalg.det(rotation) - 1) > ROTATION_TOLERANCE):
         raise StatfitError(f"{path}: similarity.rotation is not a rotation matrix (orthonormal, determinant 1)")
