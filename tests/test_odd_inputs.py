@@ -227,3 +227,18 @@ def test_a_params_file_with_no_persons_coefficients_is_refused(head_scan, tmp_pa
     code, err = run_cli(["model", "sample", "--params", str(params), "--out", str(tmp_path / "sample.ply")])
     assert code == 2 and err.count("\n") == 1 and "describes no person" in err, err
     assert not (tmp_path / "sample.ply").exists()
+
+
+def test_a_normal_map_of_a_few_pixels_is_refused_for_what_it_is(tmp_path):
+    """One foreground pixel used to be refused with a hint about units (its silhouette is tiny)."""
+    from statfit.io.image import write_image
+
+    normals, camera = tmp_path / "n.exr", tmp_path / "c.json"
+    assert run_cli(["synth", "normals", "--size", "48", "--out", str(normals), "--camera-out", str(camera)])[0] == 0
+    mask = np.zeros((48, 48, 1), np.float32)
+    mask[24, 24] = 1.0
+    write_image(tmp_path / "mask.png", mask)
+    code, err = run_cli(["render", str(normals), "--camera", str(camera), "--mask", str(tmp_path / "mask.png"),
+                         "--out", str(tmp_path / "fit.ply"), "-q"])
+    assert code == 2 and err.count("\n") == 1 and "1 foreground pixels" in err, err
+    assert not (tmp_path / "fit.ply").exists()

@@ -57,7 +57,7 @@ POSE_SETTLE = 1e-3
 # start (the old default 16.2 -> 12.2 mm); faces are equal (docs/studies.md §13, session 9).
 SHAPE_LR = 0.05
 GOOD_OVERLAP = 0.7
-MIN_COVERED_PIXELS = 16
+MIN_COVERED_PIXELS = MIN_FOREGROUND = 16     # the model's covered pixels to centre it; a map's foreground, at least
 POSE_GAIN = 0.1
 # Floats the rasteriser and objective touch per pixel and iteration (for the thread choice).
 RENDER_FLOATS_PER_PIXEL = 16
@@ -94,11 +94,12 @@ def camera_space_normals(normal_map: NormalMap, camera: Camera, space: str = "wo
 
 
 def check_framing(template: np.ndarray, camera: Camera, mask: np.ndarray, align: str) -> None:
-    """Refuse a model that lies behind the camera, or whose image is far larger or smaller than
-    the target's silhouette (different units?) unless the alignment estimates a scale; refuse an
-    empty mask."""
+    """Refuse a mask with too few foreground pixels, a model behind the camera, or one whose image is far
+    larger or smaller than the target's silhouette (units?) unless the alignment estimates a scale."""
     if not mask.any():
         raise StatfitError("the normal map's mask has no foreground pixel")
+    if (count := int(mask.sum())) < MIN_FOREGROUND:     # no surface, nor its size against the model's (units)
+        raise StatfitError(f"the normal map shows {count} foreground pixels: too few (at least {MIN_FOREGROUND})")
     pixels, depth = camera.project(torch.as_tensor(template, dtype=torch.float64))
     if float(depth.median()) <= 0:
         raise StatfitError("the model lies behind the camera: are the model and the camera in the same frame "
