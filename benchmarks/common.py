@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import platform
+import statistics
 import subprocess
 import sys
 import time
@@ -140,3 +141,30 @@ def timed_statfit(*argv: str) -> tuple[float, str]:
     if done.returncode != 0:
         raise RuntimeError(f"statfit {' '.join(argv)} failed:\n{done.stderr[-2000:]}")
     return time.perf_counter() - started, done.stdout
+
+
+def alternate(names: list[str], prepare: Callable[[str], Any], variants: tuple, rounds: int,
+              fit: Callable[[Any, Any], dict], line: Callable[[Any, dict], str],
+              warm_up: bool = False) -> dict[tuple[str, Any], list[dict]]:
+    """Two or more variants of a fit timed side by side in one process (a ratio of medians that
+    drifts with the machine cancels): for each name, its input ``prepare(name)``, then ``rounds``
+    rounds of ``fit(input, variant)`` for every variant in turn (after one unrecorded fit of the last
+    variant with ``warm_up``), each row printed as ``name`` and ``line(variant, row)``. Rows by
+    (name, variant)."""
+    rows: dict[tuple[str, Any], list[dict]] = {}
+    for name in names:
+        prepared = prepare(name)
+        if warm_up:
+            fit(prepared, variants[-1])
+        for _ in range(rounds):
+            for variant in variants:
+                row = fit(prepared, variant)
+                rows.setdefault((name, variant), []).append(row)
+                print(f"{name} {line(variant, row)}", flush=True)
+    return rows
+
+
+def median_ratio(rows: dict[tuple[str, Any], list[dict]], name: str, key: str, variant: Any, baseline: Any) -> float:
+    """The median of ``key`` over ``name``'s rows of ``variant`` ÷ that of ``baseline`` (:func:`alternate`)."""
+    return (statistics.median(row[key] for row in rows[(name, variant)])
+            / statistics.median(row[key] for row in rows[(name, baseline)]))

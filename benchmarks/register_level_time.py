@@ -9,7 +9,6 @@ then the medians' ratios.
 from __future__ import annotations
 
 import argparse
-import statistics
 import time
 from dataclasses import replace
 from unittest import mock
@@ -18,6 +17,7 @@ import numpy as np
 import torch
 
 from cases import ict_model, scan_case
+from common import alternate, median_ratio
 
 
 def fit(named, model, last_level: bool) -> dict:
@@ -46,20 +46,12 @@ def main() -> None:
     torch.set_num_threads(1)
     flush_denormals_everywhere()
     model = ict_model()
-    rows: dict[tuple[str, bool], list[dict]] = {}
+    rows = alternate(args.cases, scan_case, (True, False), args.rounds, lambda named, last: fit(named, model, last),
+                     lambda last, row: f"{'last level' if last else 'shipped':10s} whole {row['whole']:5.2f} s, "
+                                       f"closed form {row['closed']:5.2f} s, error {row['error']:.4f} cm", warm_up=True)
     for case in args.cases:
-        named = scan_case(case)
-        fit(named, model, False)        # warm-up
-        for _ in range(args.rounds):
-            for last_level in (True, False):
-                row = fit(named, model, last_level)
-                rows.setdefault((case, last_level), []).append(row)
-                print(f"{case} {'last level' if last_level else 'shipped':10s} whole {row['whole']:5.2f} s, closed "
-                      f"form {row['closed']:5.2f} s, error {row['error']:.4f} cm", flush=True)
-    for case in args.cases:
-        median = lambda last, key: statistics.median(r[key] for r in rows[(case, last)])  # noqa: E731
-        print(f"{case}: shipped ÷ last level, medians: whole {median(False, 'whole') / median(True, 'whole'):.3f}, "
-              f"closed form {median(False, 'closed') / median(True, 'closed'):.3f}")
+        print(f"{case}: shipped ÷ last level, medians: whole {median_ratio(rows, case, 'whole', False, True):.3f}, "
+              f"closed form {median_ratio(rows, case, 'closed', False, True):.3f}")
 
 
 if __name__ == "__main__":

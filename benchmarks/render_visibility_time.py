@@ -9,13 +9,13 @@ loop's seconds, the loop's ms per iteration and the error; then the medians' rat
 from __future__ import annotations
 
 import argparse
-import statistics
 import time
 from unittest import mock
 
 import torch
 
 from cases import ict_model, normal_case, relative_errors
+from common import alternate, median_ratio
 
 
 def fit(named, model, every_call: bool) -> dict:
@@ -42,20 +42,15 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     model = ict_model()
-    rows: dict[tuple[str, bool], list[dict]] = {}
+    rows = alternate(args.cases, lambda case: normal_case(case, args.size), (True, False), args.rounds,
+                     lambda named, every_call: fit(named, model, every_call),
+                     lambda every_call, row: f"{'every call' if every_call else 'shipped':10s} whole "
+                                             f"{row['whole']:6.1f} s, alignment {row['alignment']:5.1f} s, loop "
+                                             f"{row['loop']:6.1f} s ({row['ms']:.1f} ms an iteration), error "
+                                             f"{row['error']:.4f}")
     for case in args.cases:
-        named = normal_case(case, args.size)
-        for _ in range(args.rounds):
-            for every_call in (True, False):
-                row = fit(named, model, every_call)
-                rows.setdefault((case, every_call), []).append(row)
-                print(f"{case} {'every call' if every_call else 'shipped':10s} whole {row['whole']:6.1f} s, alignment "
-                      f"{row['alignment']:5.1f} s, loop {row['loop']:6.1f} s ({row['ms']:.1f} ms an iteration), "
-                      f"error {row['error']:.4f}", flush=True)
-    for case in args.cases:
-        median = lambda every_call, key: statistics.median(r[key] for r in rows[(case, every_call)])  # noqa: E731
-        print(f"{case}: shipped ÷ every call, medians: whole {median(False, 'whole') / median(True, 'whole'):.3f}, "
-              f"loop per iteration {median(False, 'ms') / median(True, 'ms'):.3f}")
+        print(f"{case}: shipped ÷ every call, medians: whole {median_ratio(rows, case, 'whole', False, True):.3f}, "
+              f"loop per iteration {median_ratio(rows, case, 'ms', False, True):.3f}")
 
 
 if __name__ == "__main__":
