@@ -1,7 +1,8 @@
 """What the pose search's choice among its refined poses costs (docs/studies.md §33): each of the
 three refined poses is polished once (every mode, 1,500 points) so that a pose polishing 1.25×
-better can overrule the refinement; the kept pose's polish is step 5's first pass, which the search
-ran before too, so the other two are the cost. Measured in the same fits, on one thread: realistic
+better can overrule the refinement; for a model with a face, as ICT's, the kept pose's polish is
+step 5's first pass, which the search ran before too, so the other two are the cost (a model without
+a face pays all three). Measured in the same fits, on one thread: realistic
 ICT scans (an identity sample, clutter 0.5, holes, noise, any pose, mm), the register default; each
 polish timed as it runs. Prints each fit's seconds, the pose search's (``estimate_pose``), the two
 extra polishes', and the whole fit's time without them ÷ with them; then medians.
