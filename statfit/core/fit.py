@@ -13,6 +13,7 @@ from typing import Callable, Protocol
 import torch
 
 from statfit.core.graphs import CapturedIteration, capturable
+from statfit.core.optim import Optimizer, ParameterGroups
 from statfit.errors import DivergenceError
 
 
@@ -96,7 +97,7 @@ Progress = Callable[[int, dict[str, float]], None]
 Snapshot = Callable[[int, torch.Tensor], None]
 
 
-def run_fit(param: Parametrization, optimizer: torch.optim.Optimizer, objective: Objective, iterations: int,
+def run_fit(param: Parametrization, optimizer: Optimizer, objective: Objective, iterations: int,
             *, on_record: Progress | None = None, record_every: int = 10, timer: StageTimer | None = None,
             first_iteration: int = 0, on_snapshot: Snapshot | None = None) -> FitResult:
     """Minimise ``objective`` over ``param`` for ``iterations`` steps.
@@ -117,7 +118,7 @@ def run_fit(param: Parametrization, optimizer: torch.optim.Optimizer, objective:
             torch.set_flush_denormal(False)
 
 
-def _loop(param: Parametrization, optimizer: torch.optim.Optimizer, objective: Objective, iterations: int,
+def _loop(param: Parametrization, optimizer: Optimizer, objective: Objective, iterations: int,
           on_record: Progress | None, record_every: int, timer: StageTimer, first_iteration: int,
           on_snapshot: Snapshot | None) -> FitResult:
     start = time.perf_counter()
@@ -197,9 +198,9 @@ def host_values(values: torch.Tensor) -> list:
     return values.tolist()
 
 
-def _clear_grads(optimizer: torch.optim.Optimizer) -> None:
-    """``optimizer.zero_grad(set_to_none=True)``, without the profiler's record ops of the base method."""
-    if type(optimizer).zero_grad is not torch.optim.Optimizer.zero_grad:
+def _clear_grads(optimizer: Optimizer) -> None:
+    """``optimizer.zero_grad(set_to_none=True)``, without the profiler's record ops of torch's base method."""
+    if isinstance(optimizer, ParameterGroups) or type(optimizer).zero_grad is not torch.optim.Optimizer.zero_grad:
         optimizer.zero_grad(set_to_none=True)
         return
     for group in optimizer.param_groups:

@@ -28,7 +28,7 @@ from typing import Callable
 
 import torch
 
-from statfit.core.optim import CAPTURABLE_OPTIMIZERS, make_capturable
+from statfit.core.optim import CAPTURABLE_OPTIMIZERS, Optimizer, make_capturable
 
 WARMUP = 3          # eager iterations on a side stream before a capture (CUDA's lazy set-up; buffer sizes)
 
@@ -40,7 +40,7 @@ def graphs_capture(device: torch.device) -> bool:
     return device.type == "cuda" and os.environ.get("STATFIT_CUDA_GRAPHS", "1") != "0"
 
 
-def capturable(objective, optimizers: list[torch.optim.Optimizer], device: torch.device, parametrization=None) -> bool:
+def capturable(objective, optimizers: list[Optimizer], device: torch.device, parametrization=None) -> bool:
     """Whether a fit against ``objective`` with ``optimizers`` (and ``parametrization``'s map, when
     one is given) on ``device`` can run as a captured graph."""
     return (graphs_capture(device)
@@ -57,7 +57,7 @@ class CapturedIteration:
     ``replayed()`` (see :func:`capturable`). ``failure`` holds why a capture failed (the fit then
     goes on eagerly); ``captures`` counts the captures."""
 
-    def __init__(self, iterate: Iteration, optimizers: list[torch.optim.Optimizer], objective):
+    def __init__(self, iterate: Iteration, optimizers: list[Optimizer], objective):
         self._iterate = iterate
         self._optimizers = optimizers
         self._objective = objective

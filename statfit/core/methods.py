@@ -18,7 +18,7 @@ import torch
 from statfit.errors import StatfitError
 from statfit.core.filters import HybridFilter, IdentityFilter, LaplacianFilter, StatisticalFilter
 from statfit.core.fit import Parametrization
-from statfit.core.optim import UniformAdam
+from statfit.core.optim import Adam, Optimizer, UniformAdam
 from statfit.core.parametrize import Filter, FilteredVertices, PCACoefficients, RegularizedVertices
 from statfit.core.settings import MAX_ITERATIONS, FitSpace, Settings, check_int
 
@@ -33,7 +33,7 @@ SPLAT_ITERATIONS = 400
 # otherwise: docs/studies.md §12 (the default's landmarks at 0.39x the start-only error at 10).
 LANDMARK_WEIGHT = 10.0
 
-Builder = Callable[[Settings, FitSpace, torch.Tensor], tuple[Parametrization, torch.optim.Optimizer]]
+Builder = Callable[[Settings, FitSpace, torch.Tensor], tuple[Parametrization, Optimizer]]
 
 
 @dataclass(frozen=True)
@@ -89,7 +89,7 @@ def _pca(settings: Settings, space: FitSpace, x0: torch.Tensor):
     scaled = space.basis_t * space.std[:, None]
     start = torch.mv(space.basis_t, (x0 - space.mean).reshape(-1)) / space.std
     param = PCACoefficients(space.mean, scaled, start, settings.prior)
-    return param, torch.optim.Adam(param.parameters(), lr=settings.lr, betas=settings.adam_betas)
+    return param, Adam(param.parameters(), lr=settings.lr, betas=settings.adam_betas)
 
 
 def _regularized(settings: Settings, space: FitSpace, x0: torch.Tensor):
@@ -100,7 +100,7 @@ def _regularized(settings: Settings, space: FitSpace, x0: torch.Tensor):
 
 def _none(settings: Settings, space: FitSpace, x0: torch.Tensor):
     param = FilteredVertices(x0, IdentityFilter())
-    return param, torch.optim.Adam(param.parameters(), lr=settings.lr, betas=settings.adam_betas)
+    return param, Adam(param.parameters(), lr=settings.lr, betas=settings.adam_betas)
 
 
 METHODS: dict[str, Method] = {}
@@ -326,7 +326,7 @@ def batchable(settings: Settings) -> bool:
             and (settings.method in ("statistical", "none") or settings.laplacian == "uniform"))
 
 
-def build(settings: Settings, space: FitSpace, x0: torch.Tensor) -> tuple[Parametrization, torch.optim.Optimizer]:
+def build(settings: Settings, space: FitSpace, x0: torch.Tensor) -> tuple[Parametrization, Optimizer]:
     """Parametrisation and optimiser for one stage, starting from vertices ``x0`` (N, 3) (or (B, N, 3):
     B fits at once, for a :func:`batchable` stage)."""
     load_plugins()

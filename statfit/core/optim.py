@@ -1,16 +1,56 @@
-"""UniformAdam (Nicolet et al. 2021): Adam whose step is divided by the square root of the
-*largest* bias-corrected second moment instead of each entry's own, so the step direction
-is the filtered gradient's direction (per-entry scaling would undo the filter). Its step size may
-settle: fall linearly to 0 over the last share of a known number of steps.
+"""The fits' optimisers: UniformAdam (Nicolet et al. 2021), Adam whose step is divided by the square
+root of the *largest* bias-corrected second moment instead of each entry's own, so the step direction
+is the filtered gradient's direction (per-entry scaling would undo the filter), its step size
+settling linearly to 0 over the last share of a known number of steps if asked; and Adam, step for
+step torch's (``torch.optim.Adam``'s arithmetic on a CPU, to the bit), for the baselines, the render
+alignment and the splats.
+
+Neither derives from ``torch.optim.Optimizer``: constructing one of those imports ``torch._dynamo``
+(its ``add_param_group`` is wrapped to disable the compiler), 1.0–1.4 s of every process's first
+fit that statfit never uses (docs/benchmarks.md §4). A fit needs only parameter groups, per-parameter
+state, ``step`` and ``zero_grad``; a plugin's method may still return any torch optimiser.
 
 :func:`make_capturable` turns an optimiser's step count into a tensor on its parameters' device, so
 the step can be captured in a CUDA graph (its bias corrections then change on every replay)."""
 from __future__ import annotations
 
+from collections import defaultdict
+from collections.abc import Iterable
+from typing import Any
+
 import torch
 
 
-class UniformAdam(torch.optim.Optimizer):
+class ParameterGroups:
+    """What a fit uses of an optimiser: ``param_groups`` (dicts: ``params``, a list of tensors, and
+    the settings, a group's own overriding ``defaults``), ``state`` (a dict per parameter) and
+    :meth:`zero_grad`. ``params``: tensors, or dicts of ``params`` and settings, one per group."""
+
+    def __init__(self, params: Iterable[torch.Tensor] | Iterable[dict[str, Any]], defaults: dict[str, Any]):
+        groups = list(params)
+        if not groups:
+            raise ValueError("optimizer got an empty parameter list")
+        if not isinstance(groups[0], dict):
+            groups = [{"params": groups}]
+        self.defaults = defaults
+        self.param_groups = [{**defaults, **group, "params": _tensors(group["params"])} for group in groups]
+        self.state: defaultdict[torch.Tensor, dict[str, Any]] = defaultdict(dict)
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        """Forget every parameter's gradient (``set_to_none=False``: zero it in place)."""
+        for group in self.param_groups:
+            for p in group["params"]:
+                if set_to_none:
+                    p.grad = None
+                elif p.grad is not None:
+                    p.grad.detach_().zero_()
+
+
+def _tensors(params: torch.Tensor | Iterable[torch.Tensor]) -> list[torch.Tensor]:
+    return [params] if isinstance(params, torch.Tensor) else list(params)
+
+
+class UniformAdam(ParameterGroups):
     """``p -= lr * m̂ / (eps + sqrt(max(v̂)))`` with Adam's moment estimates m̂, v̂.
 
     ``capturable``: the step count t is a tensor on the parameter's device and the bias corrections
@@ -59,8 +99,46 @@ class UniformAdam(torch.optim.Optimizer):
         return share.clamp(0.0, 1.0) if isinstance(share, torch.Tensor) else min(max(share, 0.0), 1.0)
 
 
+class Adam(ParameterGroups):
+    """Adam (Kingma and Ba 2015) as torch 2.13's ``torch.optim.Adam`` steps one tensor at a time
+    (its arithmetic on a CPU, to the bit: tests/test_optim.py), without weight decay, AMSGrad or
+    maximising. ``capturable``: the step count is a float64 tensor on the parameter's device and the
+    bias corrections are computed there, in the order torch's capturable step takes."""
+
+    def __init__(self, params, lr: float = 1e-3, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8,
+                 capturable: bool = False):
+        super().__init__(params, dict(lr=lr, betas=betas, eps=eps, capturable=capturable))
+
+    @torch.no_grad()
+    def step(self, closure=None):
+        for group in self.param_groups:
+            b1, b2 = group["betas"]
+            lr, eps = group["lr"], group["eps"]
+            for p in group["params"]:
+                if p.grad is None:
+                    continue
+                state = self.state[p]
+                if not state:
+                    state["step"] = 0
+                    state["exp_avg"] = torch.zeros_like(p)
+                    state["exp_avg_sq"] = torch.zeros_like(p)
+                m, v = state["exp_avg"], state["exp_avg_sq"]
+                m.lerp_(p.grad, 1 - b1)
+                v.mul_(b2).addcmul_(p.grad, p.grad, value=1 - b2)
+                if group["capturable"]:
+                    t = _step_tensor(state, p).add_(1)
+                    step_size_neg = (lr / (1 - b1**t)).neg()
+                    denom = (v.sqrt() / ((1 - b2**t).sqrt() * step_size_neg)).add_(eps / step_size_neg)
+                    p.addcdiv_(m, denom)
+                    continue
+                state["step"] += 1
+                t = float(state["step"])
+                denom = (v.sqrt() / (1 - b2**t) ** 0.5).add_(eps)
+                p.addcdiv_(m, denom, value=-(lr / (1 - b1**t)))
+
+
 # The optimisers whose steps :func:`make_capturable` can switch to a device-side step count.
-CAPTURABLE_OPTIMIZERS = (UniformAdam, torch.optim.Adam)
+CAPTURABLE_OPTIMIZERS = (UniformAdam, Adam, torch.optim.Adam)
 
 
 def _step_tensor(state: dict, p: torch.Tensor) -> torch.Tensor:
@@ -71,9 +149,9 @@ def _step_tensor(state: dict, p: torch.Tensor) -> torch.Tensor:
     return step
 
 
-def make_capturable(optimizer: torch.optim.Optimizer) -> bool:
-    """Switch ``optimizer`` (UniformAdam or torch's Adam) to steps that a CUDA graph can capture,
-    keeping its state; False (and unchanged) for any other optimiser."""
+def make_capturable(optimizer) -> bool:
+    """Switch ``optimizer`` (UniformAdam, Adam or torch's Adam) to steps that a CUDA graph can
+    capture, keeping its state; False (and unchanged) for any other optimiser."""
     if not isinstance(optimizer, CAPTURABLE_OPTIMIZERS):
         return False
     if isinstance(optimizer, torch.optim.Adam):
@@ -92,3 +170,6 @@ def make_capturable(optimizer: torch.optim.Optimizer) -> bool:
             if optimizer.state.get(p):
                 _step_tensor(optimizer.state[p], p)
     return True
+
+
+Optimizer = ParameterGroups | torch.optim.Optimizer     # what a method's builder may return

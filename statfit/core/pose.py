@@ -8,6 +8,7 @@ import numpy as np
 import torch
 
 from statfit.core.graphs import CapturedIteration, capturable
+from statfit.core.optim import Adam
 from statfit.geometry.align import Similarity
 from statfit.structures.camera import Camera
 from statfit.structures.frame import Frame
@@ -86,7 +87,7 @@ def fit_pose(vertices: torch.Tensor, loss: Loss, *, with_scale: bool = False, it
     groups = [{"params": [omega, step] + ([log_scale] if with_scale else [])}] if move else []
     if shape_basis is not None:
         groups.append({"params": [coefficients], "lr": lr if shape_lr is None else shape_lr})
-    optimizer = torch.optim.Adam(groups, lr=lr)
+    optimizer = Adam(groups, lr=lr)
     centred = vertices.detach() - centre
 
     def shape() -> torch.Tensor:

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from statfit.core.optim import Adam
 from statfit.structures.camera import Camera
 from statfit.renderer import MeshSplats, render_surfels
 
@@ -71,7 +72,7 @@ class ImageObjective:
         self.views_per_step = min(views_per_step, len(views))
         self.mask_weight = mask_weight
         self.ssim_weight = ssim_weight
-        self.optimizer = torch.optim.Adam([{"params": [tensor], "lr": SPLAT_LR[name]}
+        self.optimizer = Adam([{"params": [tensor], "lr": SPLAT_LR[name]}
                                            for name, tensor in splats.parameters().items()])
         self._generator = torch.Generator().manual_seed(seed)
         self._queue: list[int] = []
