@@ -65,6 +65,8 @@ def evaluate(
         observed = _seen_vertices(gt_vertices, gt_faces, normals, camera_path)
     elif "observed" in fields:   # the fit's own record of what its data covered
         observed = fields["observed"] > 0.5
+    if "off_span" in fields and not np.isfinite(fields["off_span"]).all():
+        raise StatfitError(f"{fit}: its off_span field holds NaN or infinite values (statfit writes none)")
     report = evaluate_fit(fit_vertices, gt_vertices, faces, observed, _region_mask(model_path, region, len(fit_vertices)),
                           fields.get("off_span"))
     if json_out:
@@ -102,7 +104,11 @@ def _region_mask(model_path: Path | None, region: str | None, num_vertices: int)
 
 def _seen_vertices(vertices: np.ndarray, faces: np.ndarray, normals: Path, camera_path: Path | None) -> np.ndarray:
     normal_map = read_normal_map(normals)
-    return visible_vertices(vertices, faces, camera_for_map(normal_map, camera_path, normals), normal_map.mask)
+    seen = visible_vertices(vertices, faces, camera_for_map(normal_map, camera_path, normals), normal_map.mask)
+    if not seen.any():
+        raise StatfitError(f"the camera of {normals} sees no vertex of the ground truth in the map's foreground: are "
+                           "they in the same frame and units?")
+    return seen
 
 
 def _json_numbers(value: Any) -> Any:

@@ -242,3 +242,58 @@ def test_a_normal_map_of_a_few_pixels_is_refused_for_what_it_is(tmp_path):
                          "--out", str(tmp_path / "fit.ply"), "-q"])
     assert code == 2 and err.count("\n") == 1 and "1 foreground pixels" in err, err
     assert not (tmp_path / "fit.ply").exists()
+
+
+def test_evaluations_of_nothing_are_refused(head_scan, tmp_path):
+    """An empty region, a camera that sees none of the ground truth and a fit file whose off_span
+    holds NaN used to give a report of NaN rows (or null edges) with exit 0."""
+    import json
+
+    from statfit.io.mesh import mesh_bytes, read_mesh
+
+    _, _, gt = head_scan
+    arrays = model_arrays(load_model(default_model_path()))
+    arrays["region_face"] = np.zeros(0, dtype=np.int64)
+    np.savez(tmp_path / "empty_region.npz", **arrays)
+    code, err = run_cli(["eval", str(gt), str(gt), "--model", str(tmp_path / "empty_region.npz"), "--region", "face"])
+    assert code == 2 and err.count("\n") == 1 and "region 'face' holds no vertex" in err, err
+
+    normals, camera = tmp_path / "n.exr", tmp_path / "c.json"
+    assert run_cli(["synth", "normals", "--size", "32", "--out", str(normals), "--camera-out", str(camera)])[0] == 0
+    behind = json.loads(camera.read_text())
+    behind["world_to_camera"][2][3] = -behind["world_to_camera"][2][3]      # the head now lies behind it
+    (tmp_path / "behind.json").write_text(json.dumps(behind))
+    code, err = run_cli(["eval", str(gt), str(gt), "--normals", str(normals), "--camera", str(tmp_path / "behind.json")])
+    assert code == 2 and err.count("\n") == 1 and "sees no vertex" in err, err
+
+    vertices, faces = read_mesh(gt)
+    off_span = np.linspace(0.0, 1.0, len(vertices))
+    off_span[:10] = np.nan
+    (tmp_path / "nan_field.ply").write_bytes(mesh_bytes(vertices, faces, "ply", {"off_span": off_span}))
+    code, err = run_cli(["eval", str(tmp_path / "nan_field.ply"), str(gt)])
+    assert code == 2 and err.count("\n") == 1 and "off_span field holds NaN" in err, err
+
+
+def test_a_camera_of_more_pixels_than_statfit_renders_is_refused():
+    """A 20000² splat render grew to the machine's 24 GB and was killed without a word."""
+    from statfit.structures.camera import MAX_CAMERA_PIXELS, Camera
+
+    Camera.look_at([0, 0, 3.0], [0, 0, 0], [0, 1, 0], 30.0, 8192, 8192)
+    assert 8192 * 8192 == MAX_CAMERA_PIXELS
+    with pytest.raises(StatfitError, match="20000×20000 pixels is larger than"):
+        Camera.look_at([0, 0, 3.0], [0, 0, 0], [0, 1, 0], 30.0, 20000, 20000)
+
+
+def test_an_initial_mesh_without_extent_is_refused_for_what_it_is(head_scan, tmp_path):
+    """`render --init` with every vertex at one point used to be refused with a hint about units."""
+    from statfit.io.mesh import mesh_bytes, read_mesh
+
+    _, _, gt = head_scan
+    vertices, faces = read_mesh(gt)
+    (tmp_path / "point.ply").write_bytes(mesh_bytes(np.zeros_like(vertices), faces, "ply"))
+    normals, camera = tmp_path / "n.exr", tmp_path / "c.json"
+    assert run_cli(["synth", "normals", "--size", "32", "--out", str(normals), "--camera-out", str(camera)])[0] == 0
+    code, err = run_cli(["render", str(normals), "--camera", str(camera), "--init", str(tmp_path / "point.ply"),
+                         "--out", str(tmp_path / "fit.ply"), "-q"])
+    assert code == 2 and err.count("\n") == 1 and "all coincide" in err, err
+    assert not (tmp_path / "fit.ply").exists()

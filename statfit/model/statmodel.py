@@ -174,10 +174,12 @@ def with_landmarks(model: StatModel, indices: np.ndarray, source: str = "landmar
 
 
 def region_vertices(model: StatModel, name: str) -> np.ndarray:
-    """The vertex indices of the region ``name``; a clear error lists the model's regions."""
+    """The vertex indices of the region ``name``; a clear error lists the model's regions, or says it is empty."""
     if name not in model.regions:
         known = ", ".join(sorted(model.regions)) or "none"
         raise StatfitError(f"the model has no region {name!r} (its regions: {known})")
+    if not len(model.regions[name]):
+        raise StatfitError(f"the model's region {name!r} holds no vertex ({model.source})")
     return model.regions[name]
 
 

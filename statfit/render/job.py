@@ -25,12 +25,13 @@ from statfit.geometry.align import Similarity, compose
 from statfit.geometry.metrics import facing_share
 from statfit.errors import StatfitError
 from statfit.core.fit import StageTimer
-from statfit.structures.frame import UNIT_MISMATCH_FACTOR, Frame
+from statfit.structures.frame import Frame
 from statfit.structures.normal_map import NormalMap
 from statfit.core.methods import resolve
 from statfit.core.settings import FitSpace, Settings
 from statfit.model.statmodel import StatModel, region_triangles
 from statfit.objectives.normals import SILHOUETTE_WEIGHT, NormalMapObjective
+from statfit.render.framing import check_framing, check_not_runaway, checked_init
 from statfit.render.visibility import alignment_visibility, visibility_options
 from statfit.core.pose import camera_in_frame, fit_pose
 from statfit.core.device import resolve_device
@@ -57,7 +58,7 @@ POSE_SETTLE = 1e-3
 # start (the old default 16.2 -> 12.2 mm); faces are equal (docs/studies.md §13, session 9).
 SHAPE_LR = 0.05
 GOOD_OVERLAP = 0.7
-MIN_COVERED_PIXELS = MIN_FOREGROUND = 16     # the model's covered pixels to centre it; a map's foreground, at least
+MIN_COVERED_PIXELS = 16     # the model's covered pixels to centre it, at least
 POSE_GAIN = 0.1
 # Floats the rasteriser and objective touch per pixel and iteration (for the thread choice).
 RENDER_FLOATS_PER_PIXEL = 16
@@ -91,27 +92,6 @@ def camera_space_normals(normal_map: NormalMap, camera: Camera, space: str = "wo
     elif convention == "opengl":
         normals = normals * np.array([1.0, -1.0, -1.0])
     return np.where(normal_map.mask[..., None], normals, 0.0)
-
-
-def check_framing(template: np.ndarray, camera: Camera, mask: np.ndarray, align: str) -> None:
-    """Refuse a mask with too few foreground pixels, a model behind the camera, or one whose image is far
-    larger or smaller than the target's silhouette (units?) unless the alignment estimates a scale."""
-    if not mask.any():
-        raise StatfitError("the normal map's mask has no foreground pixel")
-    if (count := int(mask.sum())) < MIN_FOREGROUND:     # no surface, nor its size against the model's (units)
-        raise StatfitError(f"the normal map shows {count} foreground pixels: too few (at least {MIN_FOREGROUND})")
-    pixels, depth = camera.project(torch.as_tensor(template, dtype=torch.float64))
-    if float(depth.median()) <= 0:
-        raise StatfitError("the model lies behind the camera: are the model and the camera in the same frame "
-                           "and units?")
-    pixels = pixels[depth > 0].numpy()
-    rows, cols = np.nonzero(mask)
-    model_extent = np.linalg.norm(np.ptp(pixels, axis=0))
-    target_extent = np.linalg.norm([np.ptp(cols) + 1, np.ptp(rows) + 1])
-    ratio = model_extent / target_extent
-    if align != "similarity" and not 1 / UNIT_MISMATCH_FACTOR < ratio < UNIT_MISMATCH_FACTOR:
-        raise StatfitError(f"the model's image is {ratio:.3g} times the size of the normal map's silhouette: are the "
-                           "model and the camera in different units? Rescale one, or use --align similarity")
 
 
 def _centring_guess(template: torch.Tensor, faces: torch.Tensor, camera: Camera, mask: np.ndarray,
@@ -242,7 +222,7 @@ class PosedView:
         sides = silhouette_sides(silhouette, model)
         one_sided, covering = sides == "one-sided", sides == "covering"
         timer = timer or StageTimer.for_device(device)
-        start_shape = model.template if init is None else _checked_init(init, model)
+        start_shape = model.template if init is None else checked_init(init, model)
         check_framing(start_shape, camera, normal_map.mask, align)
         frame = model.frame
         space = FitSpace.of(model, frame, device, dtype)
@@ -275,7 +255,9 @@ class PosedView:
 
     def fitted(self, result: PipelineResult, stages: tuple[Settings, ...], seconds: float, timer: StageTimer,
                threads: int) -> Fit:
-        """The fit that ``result`` (from ``start``) is, in the world frame."""
+        """The fit that ``result`` (from ``start``) is, in the world frame; DivergenceError where it ran away
+        (:func:`statfit.render.framing.check_not_runaway`)."""
+        check_not_runaway(self.start, result.vertices, self.camera, self.mask.cpu().numpy())
         to_unit = Similarity(1.0 / self.frame.scale, np.eye(3), -self.frame.center / self.frame.scale)
         from_unit = Similarity(self.frame.scale, np.eye(3), self.frame.center)
         return Fit(self.to_world(result.vertices), compose(from_unit, compose(self.pose, to_unit)), stages,
@@ -339,12 +321,3 @@ def _align(start: torch.Tensor, objective: NormalMapObjective, space: FitSpace, 
     still = fit_pose(start, objective, move=False, **common)
     chosen = moved if moved.loss < (1.0 - POSE_GAIN) * still.loss else still
     return chosen.pose, chosen.shape
-
-
-def _checked_init(init: np.ndarray, model: StatModel) -> np.ndarray:
-    init = np.asarray(init, dtype=np.float64)
-    if init.shape != model.template.shape:
-        raise StatfitError(f"the initial mesh has {init.shape[0]} vertices; the model has {model.num_vertices}")
-    if not np.isfinite(init).all():
-        raise StatfitError("the initial mesh has NaN or infinite coordinates")
-    return init

@@ -15,6 +15,9 @@ import torch
 from statfit.errors import StatfitError
 
 _RIGID_TOL = 1e-6
+# The most pixels a camera's image may have (8192²): a render of more (a splat render at 20000² asked
+# for 4.8 GB a buffer) exhausts a workstation's memory before it could be written.
+MAX_CAMERA_PIXELS = 1 << 26
 
 
 def _matrix(value: Any, shape: tuple[int, int], name: str) -> np.ndarray:
@@ -49,6 +52,9 @@ class Camera:
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value <= 0:
                 raise StatfitError(f"camera {name} must be a positive integer, got {value!r}")
             object.__setattr__(self, name, int(value))
+        if self.width * self.height > MAX_CAMERA_PIXELS:
+            raise StatfitError(f"the camera's image of {self.width}×{self.height} pixels is larger than the "
+                               f"{MAX_CAMERA_PIXELS:,} statfit renders")
         K = _matrix(self.K, (3, 3), "K")
         if not np.allclose(K[2], [0.0, 0.0, 1.0]):
             raise StatfitError(f"camera K must have bottom row (0, 0, 1), got {K[2].tolist()}")

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from statfit.core.device import resolve_device
-from statfit.errors import StatfitError
+from statfit.errors import DivergenceError, StatfitError
 from statfit.core.fit import Progress
 from statfit.core.methods import METHODS, resolve
 from statfit.core.settings import FitSpace, Settings
@@ -26,6 +26,10 @@ from statfit.texture.resample import resize_image, resize_labels, resize_mask
 
 STARTS = ("mean", "reconstruction")
 # Pixel noise (standard deviation, in [0, 1] colour units) assumed by the model-only reconstruction.
+# A fill whose hole colours lie, at the median, this far outside the range of the image's seen colours
+# (in units of that range, at least 1: [0, 1] for an 8-bit image) ran away: `--lr 1e9` filled a hole
+# with ±1e6; a converged fill overshoots the range by a few hundredths of it.
+RUNAWAY_COLOUR = 1.0
 PROJECTION_NOISE = 0.02
 
 
@@ -163,5 +167,12 @@ def inpaint(image: np.ndarray, visible: np.ndarray, method: str | None = None, m
     started = time.perf_counter()
     fit = run_stages((settings,), space, objective, x0, on_record=on_record)
     filled = fit.vertices.detach().reshape(image.shape).cpu().numpy()
+    seen = image[visible]
+    low, high = float(seen.min()), float(seen.max())
+    span = max(high - low, 1.0)
+    beyond = float(np.median(np.maximum(np.maximum(low - filled[~visible], filled[~visible] - high), 0.0))) / span
+    if not beyond <= RUNAWAY_COLOUR:
+        raise DivergenceError(f"the fill diverged: its colours lie {beyond:.3g} times the seen colours' range "
+                              "beyond it (median; step size too large?)")
     result = np.where(visible[..., None], image, filled).astype(np.float32)
     return Inpainting(result, model_only, settings, fit.loss, time.perf_counter() - started)
