@@ -9,7 +9,7 @@ import torch
 
 from conftest import run_cli
 from statfit.errors import DivergenceError
-from statfit.render.framing import RUNAWAY_IMAGE, check_not_runaway
+from statfit.core.runaway import RUNAWAY_IMAGE, check_not_runaway, image_ratio
 from statfit.structures.camera import Camera
 
 
@@ -41,8 +41,6 @@ def test_the_runaway_test_measures_the_image_against_the_silhouette_and_the_star
     camera = Camera.look_at([0, 0, 3.0], [0, 0, 0], [0, 1, 0], 30.0, 64, 64)
     rng = np.random.default_rng(0)
     mesh = torch.as_tensor(rng.normal(scale=0.1, size=(200, 3)))
-    from statfit.render.framing import image_ratio
-
     mask = np.zeros((64, 64), bool)
     mask[20:44, 20:44] = True
     base = image_ratio(mesh, camera, mask)
@@ -74,3 +72,19 @@ def test_an_inpainting_whose_colours_leave_the_image_range_is_refused(tmp_path, 
         assert not out.exists()
     else:
         assert code == 0 and out.exists(), err
+
+
+def test_a_splat_fit_that_runs_away_is_refused(tmp_path):
+    """`splat --lr 10` used to write a head 70 times its size with exit 0; tested against each
+    training photograph's foreground."""
+    views = tmp_path / "views"
+    assert run_cli(["synth", "views", "--seed", "2", "--views", "4", "--size", "48", "--out", str(views)])[0] == 0
+    for lr, refused in (("10", True), (None, False)):
+        out = tmp_path / f"fit{lr}.ply"
+        code, err = run_cli(["splat", str(views), "--iterations", "30", "--out", str(out), "-q"]
+                            + (["--lr", lr] if lr else []))
+        if refused:
+            assert code == 2 and err.count("\n") == 1 and "the fit diverged: its image is" in err, (code, err)
+            assert not out.exists()
+        else:
+            assert code == 0 and out.exists(), err

@@ -31,7 +31,8 @@ from statfit.core.methods import resolve
 from statfit.core.settings import FitSpace, Settings
 from statfit.model.statmodel import StatModel, region_triangles
 from statfit.objectives.normals import SILHOUETTE_WEIGHT, NormalMapObjective
-from statfit.render.framing import check_framing, check_not_runaway, checked_init
+from statfit.core.runaway import check_not_runaway
+from statfit.render.framing import check_framing, checked_init
 from statfit.render.visibility import alignment_visibility, visibility_options
 from statfit.core.pose import camera_in_frame, fit_pose
 from statfit.core.device import resolve_device
@@ -256,7 +257,7 @@ class PosedView:
     def fitted(self, result: PipelineResult, stages: tuple[Settings, ...], seconds: float, timer: StageTimer,
                threads: int) -> Fit:
         """The fit that ``result`` (from ``start``) is, in the world frame; DivergenceError where it ran away
-        (:func:`statfit.render.framing.check_not_runaway`)."""
+        (:func:`statfit.core.runaway.check_not_runaway`)."""
         check_not_runaway(self.start, result.vertices, self.camera, self.mask.cpu().numpy())
         to_unit = Similarity(1.0 / self.frame.scale, np.eye(3), -self.frame.center / self.frame.scale)
         from_unit = Similarity(self.frame.scale, np.eye(3), self.frame.center)

@@ -32,6 +32,7 @@ from statfit.objectives.images import MASK_WEIGHT, ImageObjective, TrainingView,
 from statfit.core.pose import camera_in_frame
 from statfit.core.settings import FitSpace, Settings
 from statfit.renderer import MeshSplats, render_surfels
+from statfit.core.runaway import check_not_runaway
 from statfit.core.stages import Fit, run_stages
 from statfit.core.threads import choose_threads, intra_op_threads
 from statfit.structures.views import View
@@ -147,6 +148,9 @@ def fit_views(model: StatModel, views: list[View], method: str = "default", *, p
 
         snapshot = None if on_snapshot is None else lambda it, x: on_snapshot(it, to_world(x))
         result = run_stages(stages, space, objective, x0, on_record=on_record, on_snapshot=snapshot, timer=timer)
+        for view in training:       # against the photograph's foreground, or its frame where it has no mask
+            frame_mask = torch.ones(view.image.shape[:2], dtype=torch.bool) if view.mask is None else view.mask > 0.5
+            check_not_runaway(x0, result.vertices, view.camera, frame_mask.cpu().numpy())
         scores = score_views(splats, result.vertices, converted, views)
         fit = Fit(to_world(result.vertices), Similarity(), stages, result.loss, time.perf_counter() - started,
                   dict(timer.seconds), result.iterations, threads=threads)
