@@ -11,6 +11,8 @@ is counted as a wait too.
 Measured 2026-11-26 (torch 2.13, CPU): 54.8 ops and 0.1 waits per iteration (the record steps'
 reads, one per 10 iterations); before the issue: 88 ops and 1.2 waits (a finiteness check of the
 vertices every iteration, an ``.any()`` at every refresh, one ``float`` per loss term per record).
+53.4 on 2026-11-28, two fewer than the day before (sync_count.py: 55 → 53): UniformAdam no longer
+derives from ``torch.optim.Optimizer``, whose step wrapper records a profiler range every step.
 """
 from __future__ import annotations
 

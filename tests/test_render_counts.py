@@ -93,7 +93,8 @@ def test_a_render_iteration_counts(embedded_model, monkeypatch, gpu_path, most):
     normal-map objective deferred the loop's finiteness test to its record steps). 775 since
     2026-11-27: products over a size-3 axis added in order (the same bits) instead of made whole and
     summed, for 3–9% less time an iteration on one CPU thread (docs/benchmarks.md §12). 777 since
-    session 23: no dump slot for CUDA's deterministic scatters to serialise (docs/method.md).
+    session 23: no dump slot for CUDA's deterministic scatters to serialise (docs/method.md). 775
+    since 2026-11-28: the optimisers' steps record no profiler range (statfit.core.optim).
 
     The renderer's GPU path (``lookups``: slots looked up, masked writes spread) is counted on a CPU
     too: a host wait there would end every CUDA capture, and no CPU run would see it. 749 ops per
@@ -123,7 +124,7 @@ def test_a_render_iteration_counts(embedded_model, monkeypatch, gpu_path, most):
 def test_a_default_render_iteration_reusing_the_visibility_counts_fewer_ops(embedded_model):
     """A tuned stage's iteration (`statistical`, --align none), the visibility reused for
     ``VISIBILITY_EVERY`` = 4 calls as shipped (docs/studies.md §31): 454 ops per iteration on average
-    at 64², measured 2026-11-27 (777 refreshing every call), and no host wait."""
+    at 64², measured 2026-11-27 (777 refreshing every call; 452 and 775 since 2026-11-28), and no host wait."""
     from statfit.render.visibility import VISIBILITY_EVERY
 
     assert VISIBILITY_EVERY == 4

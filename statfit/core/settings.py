@@ -18,8 +18,8 @@ from statfit.core.solvers import SOLVERS
 OPTIMIZERS = ("adam", "gauss-newton")
 LAPLACIANS = ("uniform", "cotangent")
 MAX_ITERATIONS = 10_000_000
-# The built-in methods that step with torch's Adam, not UniformAdam (statfit.core.methods): no settle.
-TORCH_ADAM_METHODS = ("pca", "none")
+# The built-in methods that step with Adam, not UniformAdam (statfit.core.methods): no settle.
+ADAM_METHODS = ("pca", "none")
 MAX_LEVELS = 20
 # Upper bounds: far beyond any useful value (β 1000, λ 300, γ 1, σ 0.003 are the largest tuned ones),
 # below what breaks the arithmetic (λ 10³⁰ makes I + λL numerically indefinite; β^p overflows).
@@ -98,7 +98,7 @@ class Settings:
         _check_number("settle", self.settle, high=1.0)
         if self.settle and self.optimizer != "adam":
             raise StatfitError("settle brings an Adam stage's step size down; the Gauss–Newton stage has none")
-        if self.settle and self.method in TORCH_ADAM_METHODS:
+        if self.settle and self.method in ADAM_METHODS:
             raise StatfitError(f"settle brings UniformAdam's step size down; {self.method!r} steps with Adam")
         if len(self.adam_betas) != 2 or not all(0 <= b < 1 for b in self.adam_betas):
             raise StatfitError(f"adam_betas must be two numbers in [0, 1), got {self.adam_betas}")
