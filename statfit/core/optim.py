@@ -7,7 +7,7 @@ alignment and the splats.
 
 Neither derives from ``torch.optim.Optimizer``: constructing one of those imports ``torch._dynamo``
 (its ``add_param_group`` is wrapped to disable the compiler), 1.0–1.4 s of every process's first
-fit that statfit never uses (docs/benchmarks.md §4). A fit needs only parameter groups, per-parameter
+fit that statfit never uses (docs/benchmarks.md §17). A fit needs only parameter groups, per-parameter
 state, ``step`` and ``zero_grad``; a plugin's method may still return any torch optimiser.
 
 :func:`make_capturable` turns an optimiser's step count into a tensor on its parameters' device, so
@@ -48,6 +48,9 @@ class ParameterGroups:
 
 def _tensors(params: torch.Tensor | Iterable[torch.Tensor]) -> list[torch.Tensor]:
     return [params] if isinstance(params, torch.Tensor) else list(params)
+
+
+Optimizer = ParameterGroups | torch.optim.Optimizer     # what a method's builder may return
 
 
 class UniformAdam(ParameterGroups):
@@ -138,7 +141,7 @@ class Adam(ParameterGroups):
 
 
 # The optimisers whose steps :func:`make_capturable` can switch to a device-side step count.
-CAPTURABLE_OPTIMIZERS = (UniformAdam, Adam, torch.optim.Adam)
+CAPTURABLE_OPTIMIZERS = (UniformAdam, Adam)
 
 
 def _step_tensor(state: dict, p: torch.Tensor) -> torch.Tensor:
@@ -149,27 +152,14 @@ def _step_tensor(state: dict, p: torch.Tensor) -> torch.Tensor:
     return step
 
 
-def make_capturable(optimizer) -> bool:
-    """Switch ``optimizer`` (UniformAdam, Adam or torch's Adam) to steps that a CUDA graph can
-    capture, keeping its state; False (and unchanged) for any other optimiser."""
+def make_capturable(optimizer: Optimizer) -> bool:
+    """Switch ``optimizer`` (UniformAdam or Adam) to steps that a CUDA graph can capture, keeping its
+    state; False (and unchanged) for any other optimiser (a plugin's torch optimiser steps uncaptured)."""
     if not isinstance(optimizer, CAPTURABLE_OPTIMIZERS):
         return False
-    if isinstance(optimizer, torch.optim.Adam):
-        if any(group.get(flag) for group in optimizer.param_groups for flag in ("fused", "differentiable")):
-            return False
-        for group in optimizer.param_groups:
-            group["capturable"] = True
-            for p in group["params"]:
-                state = optimizer.state.get(p)
-                if state and "step" in state:
-                    state["step"] = state["step"].to(device=p.device, dtype=torch.float32)
-        return True
     for group in optimizer.param_groups:
         group["capturable"] = True
         for p in group["params"]:
             if optimizer.state.get(p):
                 _step_tensor(optimizer.state[p], p)
     return True
-
-
-Optimizer = ParameterGroups | torch.optim.Optimizer     # what a method's builder may return
