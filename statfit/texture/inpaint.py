@@ -167,12 +167,19 @@ def inpaint(image: np.ndarray, visible: np.ndarray, method: str | None = None, m
     started = time.perf_counter()
     fit = run_stages((settings,), space, objective, x0, on_record=on_record)
     filled = fit.vertices.detach().reshape(image.shape).cpu().numpy()
-    seen = image[visible]
+    _check_not_runaway(image[visible], filled[~visible])
+    result = np.where(visible[..., None], image, filled).astype(np.float32)
+    return Inpainting(result, model_only, settings, fit.loss, time.perf_counter() - started)
+
+
+def _check_not_runaway(seen: np.ndarray, holes: np.ndarray) -> None:
+    """Raise DivergenceError where the fill's hole colours ``holes`` (H', C) lie, at the median,
+    more than RUNAWAY_COLOUR times the range of the ``seen`` colours (V, C) beyond it; an image
+    without a hole (or without a seen pixel) tests nothing."""
+    if not (len(seen) and len(holes)):
+        return
     low, high = float(seen.min()), float(seen.max())
-    span = max(high - low, 1.0)
-    beyond = float(np.median(np.maximum(np.maximum(low - filled[~visible], filled[~visible] - high), 0.0))) / span
+    beyond = float(np.median(np.maximum(np.maximum(low - holes, holes - high), 0.0))) / max(high - low, 1.0)
     if not beyond <= RUNAWAY_COLOUR:
         raise DivergenceError(f"the fill diverged: its colours lie {beyond:.3g} times the seen colours' range "
                               "beyond it (median; step size too large?)")
-    result = np.where(visible[..., None], image, filled).astype(np.float32)
-    return Inpainting(result, model_only, settings, fit.loss, time.perf_counter() - started)
