@@ -263,7 +263,8 @@ def test_evaluations_of_nothing_are_refused(head_scan, tmp_path):
     behind = json.loads(camera.read_text())
     behind["world_to_camera"][2][3] = -behind["world_to_camera"][2][3]      # the head now lies behind it
     (tmp_path / "behind.json").write_text(json.dumps(behind))
-    code, err = run_cli(["eval", str(gt), str(gt), "--normals", str(normals), "--camera", str(tmp_path / "behind.json")])
+    code, err = run_cli(["eval", str(gt), str(gt), "--normals", str(normals),
+                         "--camera", str(tmp_path / "behind.json")])
     assert code == 2 and err.count("\n") == 1 and "sees no vertex" in err, err
 
     vertices, faces = read_mesh(gt)
