@@ -45,7 +45,8 @@ def timed(path: Path, argv: list[str]) -> tuple[float, str]:
     """Wall seconds of ``statfit argv`` in a fresh process importing from ``path``, and its stdout."""
     env = dict(os.environ, PYTHONPATH=str(path))
     started = time.perf_counter()
-    done = subprocess.run([sys.executable, "-c", CLI, *argv], env=env, capture_output=True, text=True)
+    done = subprocess.run([sys.executable, "-c", CLI, *argv], env=env, capture_output=True, text=True,
+                          cwd=path)    # not a folder holding another tree's statfit, which `-c` would import first
     wall = time.perf_counter() - started
     if done.returncode:
         raise SystemExit(f"statfit {' '.join(argv)} failed: {done.stderr.strip()[-500:]}")
