@@ -21,6 +21,15 @@ def normal_map(tmp_path_factory):
     return normals, camera
 
 
+def _refused_or_written(code: int, err: str, out, refused: bool, message: str) -> None:
+    """Refused in one line naming ``message`` with nothing at ``out``, or written with exit 0."""
+    if refused:
+        assert code == 2 and err.count("\n") == 1 and message in err, (code, err)
+        assert not out.exists()
+    else:
+        assert code == 0 and out.exists(), err
+
+
 @pytest.mark.parametrize("lr, refused", [("1e6", True), ("10", True), (None, False)])
 def test_a_render_fit_whose_image_outgrows_the_map_is_refused(normal_map, tmp_path, lr, refused):
     """`--lr 1e6` used to write a head 1e5 times too large with exit 0 (`--lr 10`: several times)."""
@@ -28,11 +37,7 @@ def test_a_render_fit_whose_image_outgrows_the_map_is_refused(normal_map, tmp_pa
     out = tmp_path / "fit.ply"
     code, err = run_cli(["render", str(normals), "--camera", str(camera), "--iterations", "40", "--out", str(out), "-q"]
                         + (["--lr", lr] if lr else []))
-    if refused:
-        assert code == 2 and err.count("\n") == 1 and "the fit diverged: its image is" in err, (code, err)
-        assert not out.exists()
-    else:
-        assert code == 0 and out.exists(), err
+    _refused_or_written(code, err, out, refused, "the fit diverged: its image is")
 
 
 def test_the_runaway_test_measures_the_image_against_the_silhouette_and_the_start():
@@ -69,11 +74,7 @@ def test_an_inpainting_whose_colours_leave_the_image_range_is_refused(tmp_path, 
     out = tmp_path / "filled.png"
     code, err = run_cli(["inpaint", str(tmp_path / "image.png"), "--mask", str(tmp_path / "mask.png"),
                          "--out", str(out), "-q"] + (["--lr", lr] if lr else []))
-    if refused:
-        assert code == 2 and err.count("\n") == 1 and "the fill diverged" in err, (code, err)
-        assert not out.exists()
-    else:
-        assert code == 0 and out.exists(), err
+    _refused_or_written(code, err, out, refused, "the fill diverged")
 
 
 def test_a_splat_fit_that_runs_away_is_refused(tmp_path):
@@ -85,8 +86,4 @@ def test_a_splat_fit_that_runs_away_is_refused(tmp_path):
         out = tmp_path / f"fit{lr}.ply"
         code, err = run_cli(["splat", str(views), "--iterations", "30", "--out", str(out), "-q"]
                             + (["--lr", lr] if lr else []))
-        if refused:
-            assert code == 2 and err.count("\n") == 1 and "the fit diverged: its image is" in err, (code, err)
-            assert not out.exists()
-        else:
-            assert code == 0 and out.exists(), err
+        _refused_or_written(code, err, out, refused, "the fit diverged: its image is")

@@ -15,7 +15,7 @@ the step can be captured in a CUDA graph (its bias corrections then change on ev
 from __future__ import annotations
 
 from collections import defaultdict
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from typing import Any
 
 import torch
@@ -35,6 +35,18 @@ class ParameterGroups:
         self.defaults = defaults
         self.param_groups = [{**defaults, **group, "params": _tensors(group["params"])} for group in groups]
         self.state: defaultdict[torch.Tensor, dict[str, Any]] = defaultdict(dict)
+
+    def _stepped(self) -> Iterator[tuple[dict[str, Any], torch.Tensor, dict[str, Any]]]:
+        """(group, parameter, its state) for every parameter with a gradient, the state made at the
+        first: a step count of 0 and Adam's two moments ``m``, ``v`` at zero."""
+        for group in self.param_groups:
+            for p in group["params"]:
+                if p.grad is None:
+                    continue
+                state = self.state[p]
+                if not state:
+                    state.update(step=0, m=torch.zeros_like(p), v=torch.zeros_like(p))
+                yield group, p, state
 
     def zero_grad(self, set_to_none: bool = True) -> None:
         """Forget every parameter's gradient (``set_to_none=False``: zero it in place)."""
@@ -70,31 +82,23 @@ class UniformAdam(ParameterGroups):
 
     @torch.no_grad()
     def step(self, closure=None):
-        for group in self.param_groups:
+        for group, p, state in self._stepped():
             b1, b2 = group["betas"]
-            for p in group["params"]:
-                if p.grad is None:
-                    continue
-                state = self.state[p]
-                if not state:
-                    state["step"] = 0
-                    state["m"] = torch.zeros_like(p)
-                    state["v"] = torch.zeros_like(p)
-                m, v = state["m"], state["v"]
-                m.mul_(b1).add_(p.grad, alpha=1 - b1)
-                v.mul_(b2).addcmul_(p.grad, p.grad, value=1 - b2)
-                largest = v.flatten(1).amax(dim=1).view(-1, *(1,) * (p.dim() - 1)) if group["fits"] else v.max()
-                if group["capturable"]:
-                    t = _step_tensor(state, p).add_(1)
-                    denom = (largest / (1 - b2 ** t)).sqrt_().add_(group["eps"])
-                    size = group["lr"] / (1 - b1 ** t)
-                    p.sub_(m.mul(size * self._share(t) if self.settle else size).div_(denom))
-                    continue
-                state["step"] += 1
-                t = state["step"]
-                denom = (largest / (1 - b2**t)).sqrt_().add_(group["eps"])
-                size = group["lr"] / (1 - b1**t)
-                p.sub_(m / denom, alpha=size * self._share(t) if self.settle else size)
+            m, v = state["m"], state["v"]
+            m.mul_(b1).add_(p.grad, alpha=1 - b1)
+            v.mul_(b2).addcmul_(p.grad, p.grad, value=1 - b2)
+            largest = v.flatten(1).amax(dim=1).view(-1, *(1,) * (p.dim() - 1)) if group["fits"] else v.max()
+            if group["capturable"]:
+                t = _step_tensor(state, p).add_(1)
+                denom = (largest / (1 - b2 ** t)).sqrt_().add_(group["eps"])
+                size = group["lr"] / (1 - b1 ** t)
+                p.sub_(m.mul(size * self._share(t) if self.settle else size).div_(denom))
+                continue
+            state["step"] += 1
+            t = state["step"]
+            denom = (largest / (1 - b2**t)).sqrt_().add_(group["eps"])
+            size = group["lr"] / (1 - b1**t)
+            p.sub_(m / denom, alpha=size * self._share(t) if self.settle else size)
 
     def _share(self, t):
         """The settling share of the step size at step ``t`` (a number, or a tensor on the device)."""
@@ -114,30 +118,21 @@ class Adam(ParameterGroups):
 
     @torch.no_grad()
     def step(self, closure=None):
-        for group in self.param_groups:
-            b1, b2 = group["betas"]
-            lr, eps = group["lr"], group["eps"]
-            for p in group["params"]:
-                if p.grad is None:
-                    continue
-                state = self.state[p]
-                if not state:
-                    state["step"] = 0
-                    state["exp_avg"] = torch.zeros_like(p)
-                    state["exp_avg_sq"] = torch.zeros_like(p)
-                m, v = state["exp_avg"], state["exp_avg_sq"]
-                m.lerp_(p.grad, 1 - b1)
-                v.mul_(b2).addcmul_(p.grad, p.grad, value=1 - b2)
-                if group["capturable"]:
-                    t = _step_tensor(state, p).add_(1)
-                    step_size_neg = (lr / (1 - b1**t)).neg()
-                    denom = (v.sqrt() / ((1 - b2**t).sqrt() * step_size_neg)).add_(eps / step_size_neg)
-                    p.addcdiv_(m, denom)
-                    continue
-                state["step"] += 1
-                t = float(state["step"])
-                denom = (v.sqrt() / (1 - b2**t) ** 0.5).add_(eps)
-                p.addcdiv_(m, denom, value=-(lr / (1 - b1**t)))
+        for group, p, state in self._stepped():
+            (b1, b2), lr, eps = group["betas"], group["lr"], group["eps"]
+            m, v = state["m"], state["v"]
+            m.lerp_(p.grad, 1 - b1)
+            v.mul_(b2).addcmul_(p.grad, p.grad, value=1 - b2)
+            if group["capturable"]:
+                t = _step_tensor(state, p).add_(1)
+                step_size_neg = (lr / (1 - b1**t)).neg()
+                denom = (v.sqrt() / ((1 - b2**t).sqrt() * step_size_neg)).add_(eps / step_size_neg)
+                p.addcdiv_(m, denom)
+                continue
+            state["step"] += 1
+            t = float(state["step"])
+            denom = (v.sqrt() / (1 - b2**t) ** 0.5).add_(eps)
+            p.addcdiv_(m, denom, value=-(lr / (1 - b1**t)))
 
 
 # The optimisers whose steps :func:`make_capturable` can switch to a device-side step count.
