@@ -112,7 +112,8 @@ def model_from_arrays(v_template: np.ndarray, faces: np.ndarray, shapedirs: np.n
         raise StatfitError(f"{source}: shapedirs are all zero")
     scale = Frame.of(v_template, faces).scale
     if scale <= 1e-12 * max(1.0, float(np.abs(v_template).max())):
-        raise StatfitError(f"{source}: the template's surface vertices all coincide: a mesh without extent")
+        raise StatfitError(f"{source}: the template's surface vertices all coincide (RMS radius {scale:.3g}): a mesh "
+                           "without extent")
     if (move := float(s[0]) / np.sqrt(n)) > IMPLAUSIBLE_MODE * scale:      # the vertices' RMS move
         raise StatfitError(f"{source}: the first mode moves the template's vertices by {move / scale:.3g} of its RMS "
                            "radius per standard deviation: shapedirs are per standard deviation (people differ by a "
