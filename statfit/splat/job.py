@@ -148,9 +148,9 @@ def fit_views(model: StatModel, views: list[View], method: str = "default", *, p
 
         snapshot = None if on_snapshot is None else lambda it, x: on_snapshot(it, to_world(x))
         result = run_stages(stages, space, objective, x0, on_record=on_record, on_snapshot=snapshot, timer=timer)
-        for view in training:       # against the photograph's foreground, or its frame where it has no mask
-            frame_mask = torch.ones(view.image.shape[:2], dtype=torch.bool) if view.mask is None else view.mask > 0.5
-            check_not_runaway(x0, result.vertices, view.camera, frame_mask.cpu().numpy())
+        for view in training:       # against the photograph's foreground, or its whole image where it has no mask
+            silhouette = torch.ones(view.image.shape[:2], dtype=torch.bool) if view.mask is None else view.mask > 0.5
+            check_not_runaway(x0, result.vertices, view.camera, silhouette.cpu().numpy())
         scores = score_views(splats, result.vertices, converted, views)
         fit = Fit(to_world(result.vertices), Similarity(), stages, result.loss, time.perf_counter() - started,
                   dict(timer.seconds), result.iterations, threads=threads)

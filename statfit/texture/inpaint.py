@@ -26,11 +26,11 @@ from statfit.texture.resample import resize_image, resize_labels, resize_mask
 
 STARTS = ("mean", "reconstruction")
 # Pixel noise (standard deviation, in [0, 1] colour units) assumed by the model-only reconstruction.
+PROJECTION_NOISE = 0.02
 # A fill whose hole colours lie, at the median, this far outside the range of the image's seen colours
 # (in units of that range, at least 1: [0, 1] for an 8-bit image) ran away: `--lr 1e9` filled a hole
 # with ±1e6; a converged fill overshoots the range by a few hundredths of it.
 RUNAWAY_COLOUR = 1.0
-PROJECTION_NOISE = 0.02
 
 
 @dataclass
