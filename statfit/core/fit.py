@@ -13,7 +13,7 @@ from typing import Callable, Protocol
 import torch
 
 from statfit.core.graphs import CapturedIteration, capturable
-from statfit.core.optim import Optimizer, ParameterGroups
+from statfit.core.optim import Optimizer
 from statfit.errors import DivergenceError
 
 
@@ -200,7 +200,7 @@ def host_values(values: torch.Tensor) -> list:
 
 def _clear_grads(optimizer: Optimizer) -> None:
     """``optimizer.zero_grad(set_to_none=True)``, without the profiler's record ops of torch's base method."""
-    if isinstance(optimizer, ParameterGroups) or type(optimizer).zero_grad is not torch.optim.Optimizer.zero_grad:
+    if type(optimizer).zero_grad is not torch.optim.Optimizer.zero_grad:
         optimizer.zero_grad(set_to_none=True)
         return
     for group in optimizer.param_groups:

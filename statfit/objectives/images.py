@@ -73,7 +73,7 @@ class ImageObjective:
         self.mask_weight = mask_weight
         self.ssim_weight = ssim_weight
         self.optimizer = Adam([{"params": [tensor], "lr": SPLAT_LR[name]}
-                                           for name, tensor in splats.parameters().items()])
+                               for name, tensor in splats.parameters().items()])
         self._generator = torch.Generator().manual_seed(seed)
         self._queue: list[int] = []
         self._chosen: list[int] = []

@@ -22,8 +22,8 @@ back to front, turned by 90°). So:
    the fit, which cannot turn the model, would keep, and the refinement's free scale can stretch a
    model over what it does not describe (a face mask over a head scan's side scored 0.64 there
    against 0.73 where it belongs; polished, 0.76 against 0.55). Hair would tilt it: the modes
-   bulge the head towards a surface 5–9 mm over the scalp. So, for a model with a face (a ``face`` region or landmarks),
-   the polish runs three times: on the whole head; then where hair cannot reach — on the face
+   bulge the head towards a surface 5–9 mm over the scalp. So, for a model with a face (a ``face``
+   region or landmarks), the polish runs three times: on the whole head; then where hair cannot reach — on the face
    alone (around its landmarks, POSE_FACE_RADIUS), or, when the first pass left more than
    1 − CLUTTER_MATCHED of the points unexplained (clutter), on everything but the scalp
    (:func:`statfit.model.statmodel.scalp_triangles`: the face, the ears, the jaw and the sides below the
