@@ -307,6 +307,8 @@ def test_dask_replaces_the_worker_of_a_hung_fit(tmp_path):
 
 
 def test_batch_render_fits_each_map_like_render(tmp_path):
+    """Byte for byte as `render` fits the map alone (`--together 1`: on a GPU, batch steps maps
+    together by default, whose sums run in another order)."""
     maps = tmp_path / "maps"
     maps.mkdir()
     for seed in (1, 2):
@@ -314,7 +316,7 @@ def test_batch_render_fits_each_map_like_render(tmp_path):
     (maps / "m3.exr").write_bytes(b"not an exr")
     out = tmp_path / "fits"
     code, err = run_cli(["batch", "render", str(maps / "*.exr"), "--camera-from-header", "--out-dir", str(out),
-                         "--workers", "2", "--iterations", "20", "-q"])
+                         "--workers", "2", "--iterations", "20", "--together", "1", "-q"])
     assert code == 1, err
     assert {r["output"]: r["status"] for r in fit_rows(out)} == {"m1.ply": "done", "m2.ply": "done", "m3.ply": "failed"}
     one = tmp_path / "one.ply"

@@ -29,6 +29,7 @@ def mean_error(vertices: np.ndarray, target: np.ndarray) -> float:
 
 
 def test_largesteps_follows_the_statfit_laplacian_trajectory(problem):
+    pytest.importorskip("largesteps")    # no wheel: a machine without network may lack it
     template, faces, points, target = problem
     ours = peers.statfit_laplacian(template, faces, points, 19.0, 0.01, 30)
     theirs = peers.largesteps_laplacian(template, faces, points, 19.0, 0.01, 30)

@@ -32,12 +32,14 @@ def _refused_or_written(code: int, err: str, out, refused: bool, message: str) -
 
 @pytest.mark.parametrize("lr, refused", [("1e6", True), ("10", True), (None, False)])
 def test_a_render_fit_whose_image_outgrows_the_map_is_refused(normal_map, tmp_path, lr, refused):
-    """`--lr 1e6` used to write a head 1e5 times too large with exit 0 (`--lr 10`: several times)."""
+    """`--lr 1e6` used to write a head 1e5 times too large with exit 0 (`--lr 10`: several times).
+    Either of the runaway test's refusals: its image too large, or behind the camera (where an
+    H200's `--lr 1e6` fit ended, its sums in another order)."""
     normals, camera = normal_map
     out = tmp_path / "fit.ply"
     code, err = run_cli(["render", str(normals), "--camera", str(camera), "--iterations", "40", "--out", str(out), "-q"]
                         + (["--lr", lr] if lr else []))
-    _refused_or_written(code, err, out, refused, "the fit diverged: its image is")
+    _refused_or_written(code, err, out, refused, "the fit diverged: it")
 
 
 def test_the_runaway_test_measures_the_image_against_the_silhouette_and_the_start():
@@ -86,4 +88,4 @@ def test_a_splat_fit_that_runs_away_is_refused(tmp_path):
         out = tmp_path / f"fit{lr}.ply"
         code, err = run_cli(["splat", str(views), "--iterations", "30", "--out", str(out), "-q"]
                             + (["--lr", lr] if lr else []))
-        _refused_or_written(code, err, out, refused, "the fit diverged: its image is")
+        _refused_or_written(code, err, out, refused, "the fit diverged: it")
