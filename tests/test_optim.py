@@ -120,8 +120,10 @@ def test_adams_capturable_step_is_its_plain_step():
 
 
 def test_a_fit_never_imports_torchs_compiler():
-    """torch's own optimisers import ``torch._dynamo`` when made (1.0–1.4 s a process); a register
-    fit and a render fit (its alignment steps Adam) in a fresh process import none of it."""
+    """torch's own optimisers import ``torch._dynamo`` when made (1.0–1.4 s a process), and so does
+    ``torch.use_deterministic_algorithms`` (seen on an H200: every CUDA fit's first); a register
+    fit and a render fit (its alignment steps Adam) in a fresh process import none of it, nor does
+    CUDA's same-seed switch (a CPU can run it: it sets flags), which still sets torch's flag."""
     import subprocess
     import sys
 
@@ -139,6 +141,10 @@ statfit.register(model, model.sample(rng)[::3], "default", align="none", iterati
 camera = camera_for_view(model.template, 20.0, 5.0, 32)
 statfit.reconstruct(model, NormalMap(*render_target(model.template, model.faces, camera)), camera, "default",
                     iterations=3, threads=1)
+import torch
+from statfit.core.device import same_seed_same_bytes
+same_seed_same_bytes()
+assert torch.are_deterministic_algorithms_enabled() and torch.is_deterministic_algorithms_warn_only_enabled()
 print(sorted(name for name in sys.modules if name.startswith("torch._dynamo")))
 """
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)

@@ -40,8 +40,12 @@ def resolve_device(device: str | torch.device | None = None, job: str | None = N
 def same_seed_same_bytes() -> None:
     """Make CUDA's reductions deterministic (torch's deterministic algorithms, cuBLAS's fixed
     workspace), so a seed gives the same bytes on every run, as on the CPU; an op with no
-    deterministic CUDA kernel warns instead of failing. ``STATFIT_DETERMINISTIC=0`` opts out."""
+    deterministic CUDA kernel warns instead of failing. ``STATFIT_DETERMINISTIC=0`` opts out.
+
+    The flag is set where ``torch.use_deterministic_algorithms`` sets it: that function also
+    imports torch's compiler to set the compiler's own flag (1.5 s a process, docs/benchmarks.md
+    §12), and statfit compiles nothing."""
     if os.environ.get(DETERMINISTIC_ENV, "1") == "0":
         return
     os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
-    torch.use_deterministic_algorithms(True, warn_only=True)
+    torch._C._set_deterministic_algorithms(True, warn_only=True)
