@@ -15,7 +15,8 @@ difference over the iterations between); the set-up (the 50-iteration run less i
 pose search, factorisations, model to the device); torch ops and host waits per iteration of each
 job's loop (counted with a dispatch mode, as ``../shared/tools/sync_count.py`` counts them); and
 fits per second over a run of scans, one after another and together (``register_many``: the
-gradient stage of all stepped as one, with its ops per iteration for 8 fits), and over ICT normal maps
+gradient stage of all stepped as one, with its ops per iteration for 8 fits) and by ``statfit batch
+register`` at its defaults over 32 scans (the whole command, on the device and on the CPU), and over ICT normal maps
 (paper ``statistical``'s loop without alignment, 4 maps one after another, 16 together by
 ``reconstruct_many``; ops per iteration for 8; with ``--profile FILE`` the ops of those fits stepped
 together by their device time, op by op). A warm-up fit runs first (CUDA's start). With
@@ -219,6 +220,35 @@ def register_together(ict, embedded, points, device: str, rows: dict, count: int
                                  iterations=it)[0].fit.iterations)
 
 
+def batch_register_cli(ict, model_path: Path, device: str, rows: dict, count: int) -> None:
+    """Rows of fits per second of ``statfit batch register`` over ``count`` ICT scans (PLY files), the
+    whole command (processes, imports, CUDA's start), at its defaults (``--workers`` the cores,
+    ``--together`` from the card's memory): on ``device``, then on the CPU, the same machine."""
+    import subprocess
+    import tempfile
+
+    import trimesh
+    from statfit.synth.sample import sample_target, scan_from_view
+    with tempfile.TemporaryDirectory() as folder:
+        scans = Path(folder) / "scans"
+        scans.mkdir()
+        for seed in range(count):
+            person_rng = np.random.default_rng(500 + seed)
+            person = sample_target(ict, person_rng)
+            points = scan_from_view(person, ict.faces, person_rng, 4300, float(person_rng.uniform(-40, 40)))
+            trimesh.PointCloud(points).export(scans / f"scan{seed:03d}.ply")
+        for on in dict.fromkeys((device, "cpu")):
+            command = [sys.executable, "-m", "statfit_cli.main", "batch", "register", str(scans / "*.ply"),
+                       "--model", str(model_path), "--out-dir", str(Path(folder) / f"fits-{on}"), "--device", on,
+                       "-q"]
+            start = time.perf_counter()
+            done = subprocess.run(command, capture_output=True, text=True)
+            seconds = time.perf_counter() - start
+            fitted = len(list((Path(folder) / f"fits-{on}").glob("*.ply")))
+            rows[f"statfit batch register, {count} ICT scans, --device {on}, defaults: fits/s"] = (
+                fitted / seconds if done.returncode == 0 else f"exit {done.returncode}: {done.stderr.strip()[-200:]}")
+
+
 def render_together(ict, embedded, normal_map, camera, device: str, rows: dict, args: argparse.Namespace) -> None:
     """Rows of fits per second over ICT normal maps, one after another and stepped together
     (``reconstruct_many``), their profile (``--profile``), and ops and waits per iteration of 8."""
@@ -357,6 +387,8 @@ def main() -> None:
             time_job(name)
     if "register" in wanted:
         register_together(ict, embedded, points, device, rows, 4 if args.quick else 8)
+        save(rows, args.out)
+        batch_register_cli(ict, ICT_MODEL, device, rows, 4 if args.quick else 32)
         save(rows, args.out)
     if "render" in wanted:
         render_together(ict, embedded, normal_map, camera, device, rows, args)
