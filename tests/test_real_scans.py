@@ -9,6 +9,7 @@ import pytest
 import torch
 import trimesh
 
+import statfit.core.threads as threads_module
 from statfit.geometry.closest import ClosestPointQuery, open_edges
 from statfit.errors import StatfitError
 from statfit.registration.pose.search import estimate_pose
@@ -176,6 +177,41 @@ def test_pose_units_and_offset_are_found_without_landmarks(embedded_model, seed,
     estimate = estimate_pose(model, Scan.from_mesh(made.vertices, made.faces))
     assert _angle(estimate.transform.rotation, made.transform.rotation) < 3.0
     assert estimate.transform.scale == made.transform.scale         # the units, exactly: size is the modes'
+
+
+def test_the_pose_searchs_candidates_on_threads_find_what_one_thread_finds(embedded_model, monkeypatch):
+    """The refined candidates run on threads of their own where there are cores: every number of
+    the estimate the same to the bit as one after another (a cluttered scan: all of step 5 runs)."""
+    import statfit.registration.pose.search as search
+
+    rng = np.random.default_rng(5)
+    made = realistic_scan(embedded_model.sample(rng), embedded_model.faces, rng, yaw_deg=25.0, clutter=0.5)
+    scan = Scan.from_mesh(made.vertices, made.faces)
+    estimates = []
+    for threads in (1, 3):
+        monkeypatch.setattr(search, "task_threads", lambda tasks, cap, threads=threads: threads)
+        estimates.append(estimate_pose(embedded_model, scan))
+    alone, threaded = estimates
+    for field in ("rotation", "translation"):
+        assert np.array_equal(getattr(alone.transform, field), getattr(threaded.transform, field))
+    assert alone.transform.scale == threaded.transform.scale
+    assert np.array_equal(alone.coefficients, threaded.coefficients)
+    assert (alone.score, alone.matched, alone.runner_up) == (threaded.score, threaded.matched, threaded.runner_up)
+
+
+def test_threads_asked_for_cap_the_pose_searchs_own(embedded_model, monkeypatch):
+    """`--threads 1` means one thread: the pose search's candidates then run one after another."""
+    import statfit.registration.pose.search as search
+
+    monkeypatch.setattr(threads_module, "available_cores", lambda: 4)
+    pools = []
+    monkeypatch.setattr(search, "map_in_threads", lambda work, items, threads: pools.append(threads) or
+                        [work(item) for item in items])
+    rng = np.random.default_rng(6)
+    points = scan_from_view(embedded_model.sample(rng), embedded_model.faces, rng, 1500, 20.0)
+    for threads in (1, None):
+        register(embedded_model, points, "pca", iterations=2, threads=threads, fallback=False)
+    assert pools == [1, 3]
 
 
 def test_the_points_beyond_the_face_fits_scalp_are_the_hair(embedded_model):

@@ -85,3 +85,47 @@ def test_the_cli_flushes_before_any_parallel_kernel():
             "torch.set_num_threads(2); print(workers_flush_denormals(), file=sys.stderr)")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert result.stderr.strip().splitlines()[-1] == "True"
+
+
+def test_work_mapped_on_threads_comes_back_in_order_and_the_first_failure_is_raised():
+    import threading
+
+    from statfit.core.threads import map_in_threads
+
+    seen = set()
+
+    def square(item: int) -> int:
+        seen.add(threading.get_ident())
+        return item * item
+
+    assert map_in_threads(square, list(range(8)), 3) == [item * item for item in range(8)]
+    assert len(seen) > 1                                   # it did run on threads of its own
+    assert map_in_threads(square, [], 3) == []
+
+    def fail(item: int) -> int:
+        if item >= 2:
+            raise ValueError(f"item {item}")
+        return item
+
+    with pytest.raises(ValueError, match="item 2"):
+        map_in_threads(fail, [0, 1, 2, 3], 4)
+
+
+def test_host_tasks_take_the_cores_left_by_the_batch_share_and_the_intra_op_threads(monkeypatch):
+    from statfit.core.threads import limit_threads, task_threads
+
+    monkeypatch.setattr(threads_module, "available_cores", lambda: 8)
+    with intra_op_threads(1):
+        assert task_threads(3) == 3 and task_threads(20) == 8
+        limit_threads(2)
+        try:
+            assert task_threads(3) == 2
+        finally:
+            limit_threads(None)
+    with intra_op_threads(4):
+        assert task_threads(3) == 2
+    with intra_op_threads(1):
+        assert task_threads(3, cap=1) == 1 and task_threads(3, cap=2) == 2
+    with intra_op_threads(1):
+        monkeypatch.setattr(threads_module, "available_cores", lambda: 1)
+        assert task_threads(3) == 1

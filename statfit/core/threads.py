@@ -17,8 +17,9 @@ from __future__ import annotations
 
 import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
-from typing import Iterator
+from typing import Callable, Iterator, Sequence, TypeVar
 
 import torch
 
@@ -31,6 +32,8 @@ MAX_THREADS = 256
 FREE_CORE = 0.75
 IDLE_WINDOW = 0.1
 _limit: int | None = None  # set by limit_threads: a batch worker's share of the machine
+Item = TypeVar("Item")
+Result = TypeVar("Result")
 
 
 def available_cores() -> int:
@@ -97,6 +100,28 @@ def limit_threads(count: int | None) -> None:
     if count is not None and count < 1:
         raise StatfitError(f"thread limit must be at least 1, got {count}")
     _limit = count
+
+
+def task_threads(tasks: int, cap: int | None = None) -> int:
+    """Threads for ``tasks`` independent pieces of host work (each on this process's intra-op
+    threads): as many as the tasks, at most the cores this process may use (a batch worker's share,
+    :func:`limit_threads`; ``cap``: the threads a caller asked for, e.g. ``--threads``) over the
+    intra-op threads. No load test: such threads never wait for each other, so a busy core only
+    shares its time."""
+    cores = min(available_cores(), _limit or MAX_THREADS, cap or MAX_THREADS)
+    return max(1, min(tasks, cores // max(1, torch.get_num_threads())))
+
+
+def map_in_threads(work: Callable[[Item], Result], items: Sequence[Item], threads: int) -> list[Result]:
+    """``[work(item) for item in items]`` on up to ``threads`` threads, in order: the same values to
+    the bit (a thread inherits its creator's floating-point state, subnormals flushed or not, and
+    torch's thread count is the process's); the first failure in order is raised. NumPy, SciPy and
+    torch release the GIL inside their kernels, which is where such work spends its time."""
+    if threads <= 1 or len(items) <= 1:
+        return [work(item) for item in items]
+    with ThreadPoolExecutor(min(threads, len(items))) as pool:
+        futures = [pool.submit(work, item) for item in items]
+        return [future.result() for future in futures]
 
 
 @contextmanager

@@ -41,8 +41,9 @@ RUNAWAY = 10.0
 class FitPlan:
     """What every scan of a :func:`register` call is fitted with, checked: the pipeline, the landmark
     term's weight (the fallback's too), the fallback (None: none), the data term's trim and refresh
-    period, whether a fit starts from the pose search's shape (not the paper's preset), the device
-    and CPU threads."""
+    period, whether a fit starts from the pose search's shape (not the paper's preset), the device,
+    the fit's intra-op threads and the threads the caller asked for (None: as the machine allows;
+    they cap the pose search's own)."""
 
     stages: tuple[Settings, ...]
     weight: float
@@ -53,6 +54,7 @@ class FitPlan:
     start_from_pose: bool
     device: torch.device
     threads: int
+    threads_asked: int | None
 
 
 def plan_fits(model: StatModel, method: str, preset: str, stages: tuple[Settings, ...] | None,
@@ -73,7 +75,7 @@ def plan_fits(model: StatModel, method: str, preset: str, stages: tuple[Settings
         method_landmark_weight(fallback.method)
     return FitPlan(stages or resolve(method, preset, **overrides), weight, fallback, fallback_weight, trim,
                    refresh_every, preset != "paper", resolve_device(device, "register"),
-                   choose_threads(model.basis.size, threads))
+                   choose_threads(model.basis.size, threads), threads)
 
 
 def fit_start(space: FitSpace, query: ClosestPointQuery, points: torch.Tensor, normals: torch.Tensor | None,
@@ -173,7 +175,7 @@ class PosedScan:
         points = check_scan(scan.points)
         region_faces = None if region is None else torch.as_tensor(region_triangles(model, region),
                                                                    device=plan.device)
-        transform, pose, shape = prealign(model, scan, align, landmarks, seed)
+        transform, pose, shape = prealign(model, scan, align, landmarks, seed, plan.threads_asked)
         if pose is not None and pose["ambiguous"]:
             warnings.warn(f"the scan's pose is ambiguous: the best scores {pose['score']:.3f}, another "
                           f"{DISTINCT_DEGREES:.0f}° or more away {pose['runner_up']:.3f} (0 best, 1 worst); check the "

@@ -91,13 +91,14 @@ def landmark_alignment(model: StatModel, landmarks: np.ndarray) -> Similarity:
     return transform
 
 
-def prealign(model: StatModel, scan: Scan, align: str, landmarks: np.ndarray | None = None, seed: int = 0
-             ) -> tuple[Similarity, dict | None, np.ndarray | None]:
+def prealign(model: StatModel, scan: Scan, align: str, landmarks: np.ndarray | None = None, seed: int = 0,
+             threads: int | None = None) -> tuple[Similarity, dict | None, np.ndarray | None]:
     """The model→scan transform for ``align`` in auto|none|rigid|similarity, and for auto the
     pose search's report (:mod:`statfit.registration.pose.search`) and the polished fit's coefficients
     (K,) (None otherwise); checks units first. With ``landmarks`` (L, 3), the landmark similarity is
     the start: with align auto polished on the scan (:func:`statfit.registration.pose.search.refine_pose`,
-    whose report is returned), with none the result."""
+    whose report is returned), with none the result. ``threads``: the most the pose search may run
+    on (None: the cores this process may use)."""
     if align not in ALIGNMENTS:
         raise StatfitError(f"unknown alignment {align!r}; choose one of {', '.join(ALIGNMENTS)}")
     points = scan.points
@@ -110,7 +111,7 @@ def prealign(model: StatModel, scan: Scan, align: str, landmarks: np.ndarray | N
         return (start if align == "none" else icp(model.template, model.faces, points,
                                                   align == "similarity", start=start)), None, None
     if align == "auto":
-        estimate = estimate_pose(model, scan, seed)
+        estimate = estimate_pose(model, scan, seed, threads)
         return estimate.transform, estimate.summary(), estimate.coefficients
     ratio = np.linalg.norm(np.ptp(points, axis=0)) / np.linalg.norm(np.ptp(model.surface_template, axis=0))
     if align != "similarity" and not 1 / UNIT_MISMATCH_FACTOR < ratio < UNIT_MISMATCH_FACTOR:

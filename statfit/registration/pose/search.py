@@ -43,6 +43,7 @@ depends on units.
 """
 from __future__ import annotations
 
+import copy
 import warnings
 from dataclasses import dataclass
 
@@ -50,6 +51,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
+from statfit.core.threads import map_in_threads, task_threads
 from statfit.errors import StatfitError, StatfitWarning
 from statfit.geometry.align import Similarity
 from statfit.model.statmodel import StatModel, face_triangles, scalp_triangles
@@ -123,9 +125,10 @@ class PoseEstimate:
                 "translation": self.transform.translation.tolist()}
 
 
-def estimate_pose(model: StatModel, scan: Scan, seed: int = 0) -> PoseEstimate:
+def estimate_pose(model: StatModel, scan: Scan, seed: int = 0, threads: int | None = None) -> PoseEstimate:
     """The similarity that puts ``model`` onto ``scan`` (any rotation, offset and power-of-ten
-    units), found without landmarks; raises StatfitError when no pose matches enough of the scan."""
+    units), found without landmarks; raises StatfitError when no pose matches enough of the scan.
+    ``threads``: the most threads it may run on (None: the cores this process may use)."""
     frame = model.frame
     centroid = scan.points.mean(axis=0)
     radius = float(np.sqrt(((scan.points - centroid) ** 2).sum(axis=1).mean()))
@@ -152,15 +155,22 @@ def estimate_pose(model: StatModel, scan: Scan, seed: int = 0) -> PoseEstimate:
 
     basis_t = torch.as_tensor(np.ascontiguousarray(model.basis[:, :REFINE_MODES].T))
     std = torch.as_tensor(model.std[:REFINE_MODES] / frame.scale)
-    refined = [refine_with_first_modes(matcher, mean, basis_t, std, points[many], scan.normals[many], poses.pick(i),
-                                       bounds) for i in candidates]
     every_mode = scaled_modes(model, frame)
     polish = rng.choice(len(points), min(POLISH_SUBSAMPLE, len(points)), replace=False)
     lead = polish[:LEAD_SUBSAMPLE]
-    # Each refined pose polished at the units' scale with every mode (step 5's first pass): the
-    # refinement's free scale can stretch a model over what it does not describe (a face mask over a
-    # head scan's sides) and score better there than where it belongs.
-    leads = [polish_pose(matcher, mean, every_mode, points[lead], scan.normals[lead], pose) for pose, _, _ in refined]
+
+    def refine_and_polish(candidate: int) -> tuple[tuple[Similarity, float, float], tuple]:
+        """A candidate refined, then polished at the units' scale with every mode (step 5's first
+        pass): the refinement's free scale can stretch a model over what it does not describe (a
+        face mask over a head scan's sides) and score better there than where it belongs. On a
+        matcher of its own (a copy: its shape is this candidate's to change)."""
+        own = copy.copy(matcher)
+        refined = refine_with_first_modes(own, mean, basis_t, std, points[many], scan.normals[many],
+                                          poses.pick(candidate), bounds)
+        return refined, polish_pose(own, mean, every_mode, points[lead], scan.normals[lead], refined[0])
+
+    # The candidates are independent: each on a thread of its own where there are cores for it.
+    refined, leads = zip(*map_in_threads(refine_and_polish, candidates, task_threads(len(candidates), threads)))
     best = int(np.argmin([score for _, score, _ in refined]))
     polished = int(np.argmin([score for _, score, _, _ in leads]))
     # The deciding scores: the refinement's, or the polish's where it overrules a near tie's keeper.
