@@ -16,8 +16,8 @@ pose search, factorisations, model to the device); torch ops and host waits per 
 job's loop (counted with a dispatch mode, as ``../shared/tools/sync_count.py`` counts them); and
 fits per second over a run of scans, one after another and together (``register_many``: the
 gradient stage of all stepped as one, with its ops per iteration for 8 fits) and by ``statfit batch
-register`` at its defaults over 32 scans (the whole command, on the device and on the CPU), and over ICT normal maps
-(paper ``statistical``'s loop without alignment, 4 maps one after another, 16 together by
+register`` at its defaults over 32 scans (the whole command, on the device and on the CPU), and over
+ICT normal maps (paper ``statistical``'s loop without alignment, 4 maps one after another, 16 together by
 ``reconstruct_many``; ops per iteration for 8; with ``--profile FILE`` the ops of those fits stepped
 together by their device time, op by op). A warm-up fit runs first (CUDA's start). With
 ``--device cpu`` the same numbers on one CPU thread, for the ratio measured on the same machine;

@@ -159,7 +159,8 @@ def estimate_pose(model: StatModel, scan: Scan, seed: int = 0, threads: int | No
     polish = rng.choice(len(points), min(POLISH_SUBSAMPLE, len(points)), replace=False)
     lead = polish[:LEAD_SUBSAMPLE]
 
-    def refine_and_polish(candidate: int) -> tuple[tuple[Similarity, float, float], tuple]:
+    def refine_and_polish(candidate: int) -> tuple[tuple[Similarity, float, float],
+                                                   tuple[Similarity, float, float, np.ndarray]]:
         """A candidate refined, then polished at the units' scale with every mode (step 5's first
         pass): the refinement's free scale can stretch a model over what it does not describe (a
         face mask over a head scan's sides) and score better there than where it belongs. On a
