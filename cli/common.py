@@ -60,9 +60,10 @@ PresetOption = typer.Option("tuned", help="tuned (our measured defaults) or pape
 DeviceOption = typer.Option("cpu", envvar="STATFIT_DEVICE", help="auto, cpu or cuda (default: $STATFIT_DEVICE, else cpu). auto: the GPU when "
                             "there is one and the command is not measured faster on the CPU (register is: its "
                             "fit waits on kernel launches), else the CPU.")
-ThreadsOption = typer.Option(None, help="CPU threads for the fit. Default: 1 for head-sized models (a second "
-                             "thread gains little and stalls when the other core is busy); for large ones, the cores "
-                             "idle when the fit starts.",
+ThreadsOption = typer.Option(None, help="CPU threads for the fit, at most. Default: 1 for head-sized models (a "
+                             "second thread gains little and stalls when the other core is busy); for large ones, the "
+                             "cores idle when the fit starts. (register's pose search runs its 3 candidates side by "
+                             "side on the cores there are.)",
                              show_default=False)
 SeedOption = seed_option(0, "Random seed; the same seed gives the same mesh.")
 LogOption = typer.Option(None, help="JSON-lines log: header, a record every 10 iterations, summary.",
