@@ -16,7 +16,8 @@ pose search, factorisations, model to the device); torch ops and host waits per 
 job's loop (counted with a dispatch mode, as ``../shared/tools/sync_count.py`` counts them); and
 fits per second over a run of scans, one after another and together (``register_many``: the
 gradient stage of all stepped as one, with its ops per iteration for 8 fits) and by ``statfit batch
-register`` at its defaults over 32 scans (the whole command, on the device and on the CPU), and over
+register`` at its defaults over 32 scans, with ``statfit register``'s wall seconds for one (whole
+commands, on the device and on the CPU), and over
 ICT normal maps (paper ``statistical``'s loop without alignment, 4 maps one after another, 16 together by
 ``reconstruct_many``; ops per iteration for 8; with ``--profile FILE`` the ops of those fits stepped
 together by their device time, op by op). A warm-up fit runs first (CUDA's start). With
@@ -31,6 +32,7 @@ from __future__ import annotations
 import argparse
 import collections
 import contextlib
+import itertools
 import json
 import os
 import sys
@@ -220,10 +222,12 @@ def register_together(ict, embedded, points, device: str, rows: dict, count: int
                                  iterations=it)[0].fit.iterations)
 
 
-def batch_register_cli(ict, model_path: Path, device: str, rows: dict, count: int) -> None:
-    """Rows of fits per second of ``statfit batch register`` over ``count`` ICT scans (PLY files), the
-    whole command (processes, imports, CUDA's start), at its defaults (``--workers`` the cores,
-    ``--together`` from the card's memory): on ``device``, then on the CPU, the same machine."""
+def register_cli(ict, model_path: Path, device: str, rows: dict, count: int, rounds: int = 2) -> None:
+    """Rows of the whole commands (processes, imports, CUDA's start) on ``device`` and on the CPU,
+    the same machine: ``statfit register`` of one ICT scan, ``rounds`` fresh processes each, the
+    devices alternating (median wall seconds: the measure ``--device auto`` goes by); and fits per
+    second of ``statfit batch register`` over ``count`` ICT scans (PLY files) at its defaults
+    (``--workers`` the cores, ``--together`` from the card's memory)."""
     import subprocess
     import tempfile
 
@@ -237,7 +241,18 @@ def batch_register_cli(ict, model_path: Path, device: str, rows: dict, count: in
             person = sample_target(ict, person_rng)
             points = scan_from_view(person, ict.faces, person_rng, 4300, float(person_rng.uniform(-40, 40)))
             trimesh.PointCloud(points).export(scans / f"scan{seed:03d}.ply")
-        for on in dict.fromkeys((device, "cpu")):
+        devices = list(dict.fromkeys((device, "cpu")))
+        walls: dict[str, list[float]] = {on: [] for on in devices}
+        for _, on in itertools.product(range(rounds), devices):
+            start = time.perf_counter()
+            done = subprocess.run([sys.executable, "-m", "statfit_cli.main", "register", str(scans / "scan000.ply"),
+                                   "--model", str(model_path), "--out", str(Path(folder) / "one.ply"), "--device", on,
+                                   "-q"], capture_output=True, text=True)
+            walls[on].append(time.perf_counter() - start if done.returncode == 0 else float("nan"))
+        for on in devices:
+            rows[f"statfit register, one ICT scan, --device {on}: wall s (median of {rounds})"] = float(
+                np.median(walls[on]))
+        for on in devices:
             command = [sys.executable, "-m", "statfit_cli.main", "batch", "register", str(scans / "*.ply"),
                        "--model", str(model_path), "--out-dir", str(Path(folder) / f"fits-{on}"), "--device", on,
                        "-q"]
@@ -388,7 +403,7 @@ def main() -> None:
     if "register" in wanted:
         register_together(ict, embedded, points, device, rows, 4 if args.quick else 8)
         save(rows, args.out)
-        batch_register_cli(ict, ICT_MODEL, device, rows, 4 if args.quick else 32)
+        register_cli(ict, ICT_MODEL, device, rows, 4 if args.quick else 32)
         save(rows, args.out)
     if "render" in wanted:
         render_together(ict, embedded, normal_map, camera, device, rows, args)
