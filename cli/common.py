@@ -58,8 +58,8 @@ FallbackOption = typer.Option(True, "--fallback/--no-fallback", help="register's
                               "--region, --preset paper or any setting overridden.")
 PresetOption = typer.Option("tuned", help="tuned (our measured defaults) or paper (the paper's settings, exactly).")
 DeviceOption = typer.Option("cpu", envvar="STATFIT_DEVICE", help="auto, cpu or cuda (default: $STATFIT_DEVICE, else cpu). auto: the GPU when "
-                            "there is one and the command is not measured faster on the CPU (register is: its "
-                            "fit waits on kernel launches), else the CPU.")
+                            "there is one and the command is not measured faster on the CPU (register stays there until "
+                            "a whole command is measured faster on a card: docs/benchmarks.md §12), else the CPU.")
 ThreadsOption = typer.Option(None, help="CPU threads for the fit, at most. Default: 1 for head-sized models (a "
                              "second thread gains little and stalls when the other core is busy); for large ones, the "
                              "cores idle when the fit starts. (register's pose search runs its 3 candidates side by "

@@ -18,7 +18,10 @@ DETERMINISTIC_ENV = "STATFIT_DETERMINISTIC"
 # than one CPU core (2.6–4.2 s; its loop waits on kernel launches, its set-up runs on the host): the
 # CPU. render's took 21.3 s against ~30 s: the GPU (4.6 s on an H100 since session 23, captured, against
 # 25 s at 512² on one CPU core since the fit's stages reuse their visibility, docs/benchmarks.md §12;
-# register's 3.35-4.3 s there). Jobs not named (splat, inpaint; not measured on a GPU yet) go to the GPU.
+# register's 3.35-4.3 s there). Session 29 (an H200, the same process, alternating): register's fit 4.4-5.0 s on
+# the card against 5.7-6.1 s on one core of its host, whose pose search is 3.1 s of it either way; the
+# whole command, with CUDA's start, is not measured yet (benchmarks/gpu.py now does): still the CPU.
+# Jobs not named (splat, inpaint; not measured on a GPU yet) go to the GPU.
 AUTO_ON_GPU = {"register": False, "render": True}
 
 
