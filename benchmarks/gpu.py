@@ -11,7 +11,8 @@ on ICT's mesh with cholespy and with the dense inverse; one closest-point query 
 where the default, ``auto``, solves by the dense inverse on a GPU; each row says whether its fit ran
 as a captured graph, :mod:`statfit.core.graphs`, and the seconds of its stages) —
 seconds per fit; ms per iteration, from two runs of every stage cut to 50 and to 250 iterations (the
-difference over the iterations between); the set-up (the 50-iteration run less its iterations:
+difference over the iterations between), and from the whole fit's loop stage times (host; the
+figure to read where the set-up varies more than 200 iterations cost, as register's); the set-up (the 50-iteration run less its iterations:
 pose search, factorisations, model to the device); torch ops and host waits per iteration of each
 job's loop (counted with a dispatch mode, as ``../shared/tools/sync_count.py`` counts them); and
 fits per second over a run of scans, one after another and together (``register_many``: the
@@ -47,6 +48,8 @@ from torch.utils._python_dispatch import TorchDispatchMode
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 RENDER_TOGETHER_ITERATIONS = 300    # the maps' fits timed one after another and together
+# A fit's stages that run once, not every iteration (the rest are its loop's).
+SET_UP_STAGES = ("alignment", "gauss-newton", "fallback test")
 
 WAITING = ("_local_scalar_dense", "nonzero", "masked_select", "_unique", "unique_consecutive", "unique_dim",
            "repeat_interleave", "equal", "is_nonzero", "masked_scatter")
@@ -389,6 +392,10 @@ def main() -> None:
         rows[f"{name}: s per fit"] = seconds
         rows[f"{name}: iterations"] = None if result is None else result.iterations
         rows[f"{name}: ms/it"] = 1e3 * per_iteration_s
+        # The loop's stage times over the whole fit's iterations: where the set-up's spread between the
+        # two short fits exceeds their iterations' difference (register's), the difference says nothing.
+        loop_s = sum(seconds for stage, seconds in timer.seconds.items() if stage not in SET_UP_STAGES)
+        rows[f"{name}: loop ms/it (its stage times)"] = 1e3 * loop_s / result.iterations if result else float("nan")
         rows[f"{name}: set-up s"] = short_seconds - short.iterations * per_iteration_s
         rows[f"{name}: CUDA graph"] = "; ".join(sorted(set(timer.notes.values()))) or "-"
         rows[f"{name}: stage s"] = ", ".join(f"{stage} {value:.2f}" for stage, value in timer.seconds.items())
