@@ -89,6 +89,7 @@ def test_the_cli_flushes_before_any_parallel_kernel():
 
 def test_work_mapped_on_threads_comes_back_in_order_and_the_first_failure_is_raised():
     import threading
+    import time
 
     from statfit.core.threads import map_in_threads
 
@@ -96,6 +97,7 @@ def test_work_mapped_on_threads_comes_back_in_order_and_the_first_failure_is_rai
 
     def square(item: int) -> int:
         seen.add(threading.get_ident())
+        time.sleep(0.02)         # busy: the next items go to threads of their own, not to an idle one
         return item * item
 
     assert map_in_threads(square, list(range(8)), 3) == [item * item for item in range(8)]
