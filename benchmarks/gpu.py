@@ -5,27 +5,27 @@
 
 Prints a markdown table: the filter step at 2^20 vertices (k = 100); one prefactored Laplacian solve
 on ICT's mesh with cholespy and with the dense inverse; one closest-point query of the scan term
-(ICT, 4,300 points) and the register default's fallback test on the same points; ``register`` (ICT jaw-open, 4,300 points) and
-``render`` (ICT jaw-open, 512²) at the default and at the paper's settings (render's also op by op,
-``STATFIT_CUDA_GRAPHS=0``; both defaults also with the cholespy solve, which no CUDA graph captures,
-where the default, ``auto``, solves by the dense inverse on a GPU; each row says whether its fit ran
-as a captured graph, :mod:`statfit.core.graphs`, and the seconds of its stages) —
-seconds per fit; ms per iteration, from two runs of every stage cut to 50 and to 250 iterations (the
-difference over the iterations between), and from the whole fit's loop stage times (host; the
-figure to read where the set-up varies more than 200 iterations cost, as register's); the set-up (the 50-iteration run less its iterations:
-pose search, factorisations, model to the device); torch ops and host waits per iteration of each
-job's loop (counted with a dispatch mode, as ``../shared/tools/sync_count.py`` counts them); and
-fits per second over a run of scans, one after another and together (``register_many``: the
-gradient stage of all stepped as one, with its ops per iteration for 8 fits) and by ``statfit batch
-register`` at its defaults over 32 scans, with ``statfit register``'s wall seconds for one (whole
-commands, on the device and on the CPU), and over
-ICT normal maps (paper ``statistical``'s loop without alignment, 4 maps one after another, 16 together by
-``reconstruct_many``; ops per iteration for 8; with ``--profile FILE`` the ops of those fits stepped
-together by their device time, op by op). A warm-up fit runs first (CUDA's start). With
-``--device cpu`` the same numbers on one CPU thread, for the ratio measured on the same machine;
-with ``--only JOB`` only that job's rows (and the filter's), for a short card run. The shipped
-settings' rows come first, then the fits together, then the comparisons, so a run cut short by a
-time limit keeps the former.
+(ICT, 4,300 points) and the register default's fallback test on the same points; ``register`` (ICT
+jaw-open, 4,300 points) and ``render`` (ICT jaw-open, 512²) at the default and at the paper's
+settings (render's also op by op, ``STATFIT_CUDA_GRAPHS=0``; both defaults also with the cholespy
+solve, which no CUDA graph captures, where the default, ``auto``, solves by the dense inverse on a
+GPU; each row says whether its fit ran as a captured graph, :mod:`statfit.core.graphs`, and the
+seconds of its stages) — seconds per fit; ms per iteration, from two runs of every stage cut to 50
+and to 250 iterations (the difference over the iterations between), and from the whole fit's loop
+stage times (host; the figure to read where the set-up varies more than 200 iterations cost, as
+register's); the set-up (the 50-iteration run less its iterations: pose search, factorisations,
+model to the device); torch ops and host waits per iteration of each job's loop (counted with a
+dispatch mode, as ``../shared/tools/sync_count.py`` counts them); and fits per second over a run of
+scans, one after another and together (``register_many``: the gradient stage of all stepped as one,
+with its ops per iteration for 8 fits) and by ``statfit batch register`` at its defaults over 32
+scans, with ``statfit register``'s wall seconds for one (whole commands, on the device and on the
+CPU), and over ICT normal maps (paper ``statistical``'s loop without alignment, 4 maps one after
+another, 16 together by ``reconstruct_many``; ops per iteration for 8; with ``--profile FILE`` the
+ops of those fits stepped together by their device time, op by op). A warm-up fit runs first (CUDA's
+start). With ``--device cpu`` the same numbers on one CPU thread, for the ratio measured on the same
+machine; with ``--only JOB`` only that job's rows (and the filter's), for a short card run. The
+shipped settings' rows come first, then the fits together, then the comparisons, so a run cut short
+by a time limit keeps the former.
 The ICT data must be at ../shared/data/ict-face.
 """
 from __future__ import annotations
@@ -50,6 +50,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 RENDER_TOGETHER_ITERATIONS = 300    # the maps' fits timed one after another and together
 # A fit's stages that run once, not every iteration (the rest are its loop's).
 SET_UP_STAGES = ("alignment", "gauss-newton", "fallback test")
+
+STATFIT = [sys.executable, "-m", "statfit_cli.main"]
 
 WAITING = ("_local_scalar_dense", "nonzero", "masked_select", "_unique", "unique_consecutive", "unique_dim",
            "repeat_interleave", "equal", "is_nonzero", "masked_scatter")
@@ -198,17 +200,24 @@ def report(rows: dict[str, object], out: Path | None) -> None:
     save(rows, out)
 
 
+def ict_scans(ict, count: int, first_seed: int) -> list[np.ndarray]:
+    """``count`` scans (4,300 points, a view within 40° of the front) of ICT people, seeds from ``first_seed``."""
+    from statfit.synth.sample import sample_target, scan_from_view
+
+    scans = []
+    for seed in range(first_seed, first_seed + count):
+        person_rng = np.random.default_rng(seed)
+        person = sample_target(ict, person_rng)
+        scans.append(scan_from_view(person, ict.faces, person_rng, 4300, float(person_rng.uniform(-40, 40))))
+    return scans
+
+
 def register_together(ict, embedded, points, device: str, rows: dict, count: int) -> None:
     """Rows of fits per second over ``count`` ICT scans, one after another and stepped together
     (``register_many``), and ops and waits per iteration of 8 fits together."""
     import statfit
     from statfit.registration.many import register_many
-    from statfit.synth.sample import sample_target, scan_from_view
-    scans = []
-    for seed in range(count):
-        person_rng = np.random.default_rng(100 + seed)
-        person = sample_target(ict, person_rng)
-        scans.append(scan_from_view(person, ict.faces, person_rng, 4300, float(person_rng.uniform(-40, 40))))
+    scans = ict_scans(ict, count, 100)
     synchronize(device)
     start = time.perf_counter()
     for points_of_one in scans:
@@ -235,32 +244,27 @@ def register_cli(ict, model_path: Path, device: str, rows: dict, count: int, rou
     import tempfile
 
     import trimesh
-    from statfit.synth.sample import sample_target, scan_from_view
     with tempfile.TemporaryDirectory() as folder:
         scans = Path(folder) / "scans"
         scans.mkdir()
-        for seed in range(count):
-            person_rng = np.random.default_rng(500 + seed)
-            person = sample_target(ict, person_rng)
-            points = scan_from_view(person, ict.faces, person_rng, 4300, float(person_rng.uniform(-40, 40)))
-            trimesh.PointCloud(points).export(scans / f"scan{seed:03d}.ply")
+        for index, points in enumerate(ict_scans(ict, count, 500)):
+            trimesh.PointCloud(points).export(scans / f"scan{index:03d}.ply")
         devices = list(dict.fromkeys((device, "cpu")))
         walls: dict[str, list[float]] = {on: [] for on in devices}
         for _, on in itertools.product(range(rounds), devices):
             start = time.perf_counter()
-            done = subprocess.run([sys.executable, "-m", "statfit_cli.main", "register", str(scans / "scan000.ply"),
-                                   "--model", str(model_path), "--out", str(Path(folder) / "one.ply"), "--device", on,
-                                   "-q"], capture_output=True, text=True)
+            done = subprocess.run([*STATFIT, "register", str(scans / "scan000.ply"), "--model", str(model_path),
+                                   "--out", str(Path(folder) / "one.ply"), "--device", on, "-q"],
+                                  capture_output=True, text=True)
             walls[on].append(time.perf_counter() - start if done.returncode == 0 else float("nan"))
         for on in devices:
             rows[f"statfit register, one ICT scan, --device {on}: wall s (median of {rounds})"] = float(
                 np.median(walls[on]))
         for on in devices:
-            command = [sys.executable, "-m", "statfit_cli.main", "batch", "register", str(scans / "*.ply"),
-                       "--model", str(model_path), "--out-dir", str(Path(folder) / f"fits-{on}"), "--device", on,
-                       "-q"]
             start = time.perf_counter()
-            done = subprocess.run(command, capture_output=True, text=True)
+            done = subprocess.run([*STATFIT, "batch", "register", str(scans / "*.ply"), "--model", str(model_path),
+                                   "--out-dir", str(Path(folder) / f"fits-{on}"), "--device", on, "-q"],
+                                  capture_output=True, text=True)
             seconds = time.perf_counter() - start
             fitted = len(list((Path(folder) / f"fits-{on}").glob("*.ply")))
             rows[f"statfit batch register, {count} ICT scans, --device {on}, defaults: fits/s"] = (
@@ -394,7 +398,7 @@ def main() -> None:
         rows[f"{name}: ms/it"] = 1e3 * per_iteration_s
         # The loop's stage times over the whole fit's iterations: where the set-up's spread between the
         # two short fits exceeds their iterations' difference (register's), the difference says nothing.
-        loop_s = sum(seconds for stage, seconds in timer.seconds.items() if stage not in SET_UP_STAGES)
+        loop_s = sum(spent for stage, spent in timer.seconds.items() if stage not in SET_UP_STAGES)
         rows[f"{name}: loop ms/it (its stage times)"] = 1e3 * loop_s / result.iterations if result else float("nan")
         rows[f"{name}: set-up s"] = short_seconds - short.iterations * per_iteration_s
         rows[f"{name}: CUDA graph"] = "; ".join(sorted(set(timer.notes.values()))) or "-"

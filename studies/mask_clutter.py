@@ -18,7 +18,7 @@ point). Each scan fitted four ways, the pose found without landmarks:
 Reported: the mean vertex error over the whole mask (mm), the pose's rotation error (°) and how
 many of the default's fits fell back.
 
-    python studies/mask_clutter.py            # ~8 min on 2 cores
+    python studies/mask_clutter.py            # ~6 min on 2 cores
     python studies/mask_clutter.py --report   # the tables from studies/results/mask_clutter.json
 """
 from __future__ import annotations
@@ -31,7 +31,6 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
-sys.path.insert(0, str(ROOT / "studies"))
 from study_runs import study_main  # noqa: E402  (beside this script)
 
 RESULTS = ROOT / "studies" / "results" / "mask_clutter.json"

@@ -128,6 +128,5 @@ def test_host_tasks_take_the_cores_left_by_the_batch_share_and_the_intra_op_thre
         assert task_threads(3) == 2
     with intra_op_threads(1):
         assert task_threads(3, cap=1) == 1 and task_threads(3, cap=2) == 2
-    with intra_op_threads(1):
         monkeypatch.setattr(threads_module, "available_cores", lambda: 1)
         assert task_threads(3) == 1

@@ -44,6 +44,12 @@ def available_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+def usable_cores() -> int:
+    """The cores this process may use: its CPU affinity, capped by a batch worker's share
+    (:func:`limit_threads`)."""
+    return min(available_cores(), _limit or MAX_THREADS)
+
+
 def idle_cores(window: float = IDLE_WINDOW) -> float | None:
     """How many of this process's cores (its CPU affinity) sat idle over the next ``window``
     seconds, from the kernel's per-CPU time counters (``/proc/stat``: idle and I/O wait over all
@@ -86,7 +92,7 @@ def choose_threads(work: int, threads: int | None = None) -> int:
         if not 1 <= threads <= MAX_THREADS:
             raise StatfitError(f"--threads must be between 1 and {MAX_THREADS}, got {threads}")
         return threads
-    cores = min(available_cores(), _limit or MAX_THREADS)
+    cores = usable_cores()
     if work < PARALLEL_WORK or cores == 1:
         return 1
     idle = idle_cores()
@@ -108,7 +114,7 @@ def task_threads(tasks: int, cap: int | None = None) -> int:
     :func:`limit_threads`; ``cap``: the threads a caller asked for, e.g. ``--threads``) over the
     intra-op threads. No load test: such threads never wait for each other, so a busy core only
     shares its time."""
-    cores = min(available_cores(), _limit or MAX_THREADS, cap or MAX_THREADS)
+    cores = min(usable_cores(), cap or MAX_THREADS)
     return max(1, min(tasks, cores // max(1, torch.get_num_threads())))
 
 
