@@ -142,3 +142,31 @@ def test_umeyama_exact(rng):
     truth = Similarity(2.5, Rotation.random(random_state=3).as_matrix(), rng.standard_normal(3))
     got = umeyama(src, truth.apply(src), with_scale=True)
     np.testing.assert_allclose(got.apply(src), truth.apply(src), atol=1e-10)
+
+
+def test_kd_trees_build_while_the_thread_flushes_subnormals():
+    """A fit's thread flushes subnormals to zero; SciPy's balanced KD-tree build then recursed
+    without end on coordinates tied at zero (a symmetric model's midline) and the process died of
+    a segmentation fault. Run in a child process, so a crash is a failed test, not a lost worker;
+    the tree must be the one built without flushing, and the thread's mode restored."""
+    import subprocess
+    import sys
+
+    child = """
+import numpy as np, torch
+from statfit.structures.kdtree import flushes_subnormals, kd_tree
+points = np.random.default_rng(0).normal(size=(1000, 3))
+points[:300, 0] = 0.0                              # 300 points on the plane x = 0
+plain = kd_tree(points)
+torch.set_flush_denormal(True)
+assert flushes_subnormals()
+tree = kd_tree(points)
+assert flushes_subnormals()
+query = np.random.default_rng(1).normal(size=(200, 3))
+assert all((a == b).all() for a, b in zip(tree.query(query, k=3), plain.query(query, k=3)))
+torch.set_flush_denormal(False)
+assert not flushes_subnormals()
+print("built")
+"""
+    done = subprocess.run([sys.executable, "-c", child], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and done.stdout.strip() == "built", (done.returncode, done.stderr[-2000:])

@@ -3,11 +3,11 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
 from statfit.geometry.closest import ClosestPointQuery
 from statfit.structures.frame import Frame
 from statfit.renderer import Camera, rasterize
+from statfit.structures.kdtree import kd_tree
 
 
 def observed_vertices(vertices: np.ndarray, points: np.ndarray, radius: float | None = None) -> np.ndarray:
@@ -21,7 +21,7 @@ def nearest_point_distance(vertices: np.ndarray, points: np.ndarray, radius: flo
     """(N,) distance of each vertex (N, 3) to the nearest of ``points`` (M, 3), and (N,) bool whether
     it lies within ``radius`` (default: three times the points' median nearest-neighbour spacing) —
     one KD-tree for both."""
-    tree = cKDTree(points)
+    tree = kd_tree(points)
     if radius is None:
         spacing, _ = tree.query(points, k=2)
         radius = 3.0 * float(np.median(spacing[:, 1]))

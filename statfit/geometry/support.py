@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
 from statfit.geometry.metrics import nearest_point_distance
 from statfit.renderer import Camera, interpolate_fragments, rasterize
+from statfit.structures.kdtree import kd_tree
 
 
 def scan_support(vertices: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -43,5 +43,5 @@ def view_support(vertices: np.ndarray, faces: np.ndarray, views: list[tuple[Came
     points = np.concatenate(lifted) if lifted else np.zeros((0, 3))
     if len(points) == 0:
         return np.full(len(vertices), np.inf), observed
-    distance, _ = cKDTree(points).query(vertices, k=1)
+    distance, _ = kd_tree(points).query(vertices, k=1)
     return distance.astype(np.float64), observed

@@ -13,10 +13,10 @@ import warnings
 
 import igl
 import numpy as np
-from scipy.spatial import cKDTree
 
 from statfit.errors import StatfitError, StatfitWarning
 from statfit.model.statmodel import StatModel, model_from_arrays
+from statfit.structures.kdtree import kd_tree
 
 
 def vertex_subset(model: StatModel, keep: np.ndarray, faces: np.ndarray | None = None,
@@ -41,7 +41,7 @@ def vertex_subset(model: StatModel, keep: np.ndarray, faces: np.ndarray | None =
     shapedirs = (model.basis * model.std).reshape(model.num_vertices, 3, model.num_modes)[keep]
     landmarks = None
     if model.landmarks is not None and nearest_landmarks:
-        landmarks = cKDTree(model.template[keep]).query(model.template[model.landmarks])[1]
+        landmarks = kd_tree(model.template[keep]).query(model.template[model.landmarks])[1]
     elif model.landmarks is not None:
         if (new_index[model.landmarks] >= 0).all():
             landmarks = new_index[model.landmarks]

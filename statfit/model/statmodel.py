@@ -15,12 +15,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from statfit.errors import StatfitError
 from statfit.structures.frame import Frame, surface_vertices
 from statfit.io.mesh import write_atomic
 from statfit.io.npz import npz_bytes, read_npz
+from statfit.structures.kdtree import kd_tree
 
 
 @dataclass(frozen=True)
@@ -205,7 +205,7 @@ def face_triangles(model: StatModel, radius: float = FACE_RADIUS) -> np.ndarray 
         return region_triangles(model, "face")
     if model.landmarks is None:
         return None
-    nearest, _ = cKDTree(model.template[model.landmarks]).query(model.template)
+    nearest, _ = kd_tree(model.template[model.landmarks]).query(model.template)
     inside = nearest < radius * model.frame.scale
     return inside[model.faces].all(axis=1)
 

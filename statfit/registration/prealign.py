@@ -3,13 +3,13 @@ similarity found (automatic pose search, landmarks, ICP) or taken as given."""
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from statfit.errors import StatfitError
 from statfit.geometry.align import Similarity, icp, initial_guess, umeyama
 from statfit.model.statmodel import StatModel
 from statfit.registration.pose.search import estimate_pose, refine_pose
 from statfit.structures.frame import UNIT_MISMATCH_FACTOR
+from statfit.structures.kdtree import kd_tree
 from statfit.structures.scan import Scan
 
 ALIGNMENTS = ("auto", "none", "rigid", "similarity")
@@ -68,7 +68,7 @@ def check_scan_landmarks(points: np.ndarray, landmarks: np.ndarray, present: np.
         raise StatfitError("the scan's landmarks lie on one line (or coincide): no pose can be read from them")
     centred = points - points.mean(axis=0)
     radius = float(np.sqrt(np.square(centred).sum(axis=1).mean()))
-    distance = float(np.median(cKDTree(points).query(target)[0]))
+    distance = float(np.median(kd_tree(points).query(target)[0]))
     if distance > LANDMARK_REACH * radius:
         raise StatfitError(f"the scan's landmarks lie {distance / radius:.3g} of the scan's radius from its points "
                            "(median): are they in the scan's units and frame?")

@@ -15,9 +15,9 @@ and memory then no longer grow with the scan's size; scans of the usual size are
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from statfit.errors import StatfitError
+from statfit.structures.kdtree import kd_tree
 
 # Points drawn from a mesh scan: as many as it has vertices, within these bounds (a head is well
 # covered by far fewer than the most; the fit's cost grows with the count).
@@ -93,7 +93,7 @@ def estimate_normals(points: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS) ->
     """Unit normals (M, 3) of a point cloud (M, 3), unoriented: the direction of least spread of
     each point's ``neighbours`` nearest points."""
     k = min(neighbours, len(points))
-    _, nearest = cKDTree(points).query(points, k=k)
+    _, nearest = kd_tree(points).query(points, k=k)
     local = points[nearest.reshape(len(points), k)]
     local = local - local.mean(axis=1, keepdims=True)
     _, vectors = np.linalg.eigh(np.einsum("mki,mkj->mij", local, local))

@@ -3,11 +3,11 @@ one shape's nearest vertices and their tangent planes."""
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from statfit.geometry.closest import ClosestPointQuery
 from statfit.registration.pose.hypotheses import Poses
+from statfit.structures.kdtree import kd_tree
 
 KEEP = 0.7                 # fraction of the normal-compatible points kept per ICP round (the nearest)
 NORMAL_COSINE = 0.5        # |cos| between scan and surface normals for a point to count (60°)
@@ -25,7 +25,7 @@ class Matcher:
 
     def set_shape(self, vertices: np.ndarray) -> None:
         self.vertices = vertices
-        self.tree = cKDTree(vertices)
+        self.tree = kd_tree(vertices)
         a, b, c = (vertices[self.faces[:, i]] for i in range(3))
         corner_normals = np.repeat(np.cross(b - a, c - a), 3, axis=0)
         normals = np.stack([np.bincount(self.faces.reshape(-1), corner_normals[:, i], len(vertices))
