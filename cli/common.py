@@ -51,7 +51,8 @@ MethodOption = typer.Option("default", help="default (the measured best pipeline
                             + ". register's pca is the closed-form Gauss-Newton fit alone; its default adds 200 hybrid steps."
                             " render's default: two hybrid stages, then the Laplacian filter (docs/studies.md §13).")
 FallbackOption = typer.Option(True, "--fallback/--no-fallback", help="register's default only: where its fit leaves "
-                              "the scan it saw more than 2% of the model's radius away on average, or needs more than "
+                              "the scan it saw more than 2% of the model's radius away on average (points past or near "
+                              "the model's open border, such as a face mask's neck, left out), or needs more than "
                               "3.5 standard deviations per mode, the person holds a shape the model cannot make and its "
                               "guess of the unseen part is unreliable: refit with "
                               "laplacian, said on stderr and in the summary's fallback (docs/method.md). Not with "

@@ -62,14 +62,28 @@ def surface_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray
     return _exact_closest(points, vertices, faces)[1].distance.numpy()
 
 
-def inside_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def inside_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, border_band: float = 0.0
+                    ) -> np.ndarray:
     """:func:`surface_distance`, NaN where the nearest surface point lies on the surface's open
     boundary: the point lies beyond what the surface covers (a scan's shoulders past a head cut
-    at the neck), so its distance says nothing of the fit. (M,)"""
+    at the neck), so its distance says nothing of the fit. With ``border_band`` (the points' unit),
+    NaN too where the nearest surface point lies within that distance of a boundary vertex: a
+    mask's neck and shoulders lie just beyond its chin, and under it. (M,)"""
     query, hit = _exact_closest(points, vertices, faces)
     opposite_open = query.open_edges[hit.triangle]                  # (M, 3): edge opposite corner i
-    on_boundary = (opposite_open & (hit.barycentric < 1e-6)).any(dim=1)
-    return np.where(on_boundary.numpy(), np.nan, hit.distance.numpy())
+    beyond = (opposite_open & (hit.barycentric < 1e-6)).any(dim=1).numpy()
+    if border_band > 0 and (border := border_vertices(query.open_edges.numpy(), faces)).size:
+        nearest = np.einsum("mi,mij->mj", hit.barycentric.numpy(), vertices[faces[hit.triangle.numpy()]])
+        to_border, _ = kd_tree(vertices[border]).query(nearest, distance_upper_bound=border_band)
+        beyond |= to_border < border_band
+    return np.where(beyond, np.nan, hit.distance.numpy())
+
+
+def border_vertices(opposite_open: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """The vertices on a mesh's open boundary, sorted, from ``opposite_open`` (F, 3) bool, whether
+    the edge opposite each corner of ``faces`` (F, 3) is open (:func:`statfit.geometry.closest.open_edges`)."""
+    return np.unique(np.concatenate([faces[opposite_open[:, i]][:, [(i + 1) % 3, (i + 2) % 3]].reshape(-1)
+                                     for i in range(3)]))
 
 
 def _summary(values: np.ndarray, scale: float) -> dict[str, float]:

@@ -13,7 +13,8 @@ import torch
 
 from statfit.core.device import resolve_device
 from statfit.core.fit import StageTimer
-from statfit.core.methods import Fallback, fallback as method_fallback, landmark_weight as method_landmark_weight, resolve
+from statfit.core.methods import (FALLBACK_BORDER_BAND, Fallback, fallback as method_fallback,
+                                  landmark_weight as method_landmark_weight, resolve)
 from statfit.core.settings import FitSpace, Settings
 from statfit.core.stages import PipelineResult, run_stages
 from statfit.core.threads import choose_threads
@@ -255,10 +256,12 @@ class PosedScan:
 
     def residual(self, run: _StagesRun) -> float:
         """The mean distance of the scan points the fit was given to its surface, in the posed
-        model's RMS radii (the fit frame's unit), points beyond its open boundary left out
-        (:func:`statfit.geometry.metrics.inside_distance`); 0 if every point lies beyond."""
+        model's RMS radii (the fit frame's unit), leaving out the points whose nearest surface point
+        lies on its open boundary or within FALLBACK_BORDER_BAND of it
+        (:func:`statfit.geometry.metrics.inside_distance`); 0 if every point is left out."""
         distance = inside_distance(run.points.detach().cpu().double().numpy(),
-                                   run.result.vertices.detach().cpu().double().numpy(), self.model.faces)
+                                   run.result.vertices.detach().cpu().double().numpy(), self.model.faces,
+                                   border_band=FALLBACK_BORDER_BAND)
         inside = distance[np.isfinite(distance)]
         return float(inside.mean()) if inside.size else 0.0
 
