@@ -298,3 +298,22 @@ def test_an_initial_mesh_without_extent_is_refused_for_what_it_is(head_scan, tmp
                          "--out", str(tmp_path / "fit.ply"), "-q"])
     assert code == 2 and err.count("\n") == 1 and "all coincide" in err, err
     assert not (tmp_path / "fit.ply").exists()
+
+
+def test_a_scan_whose_points_tie_at_zero_is_refused_not_a_crash(tmp_path):
+    """1,500 of 4,300 points on the plane x = 0 exactly (a symmetric cloud's midline): SciPy's
+    KD-tree build recursed without end there while the CLI flushed subnormals, and `statfit
+    register` died of a segmentation fault (exit 139, no message). A child process, so a crash
+    fails this test instead of killing its worker."""
+    import subprocess
+    import sys
+
+    points = np.random.default_rng(0).normal(size=(4300, 3)) * 50.0
+    points[:1500, 0] = 0.0
+    trimesh.PointCloud(points).export(tmp_path / "ties.ply")
+    out = tmp_path / "fit.ply"
+    done = subprocess.run([sys.executable, "-c", "from statfit_cli.main import main; main()", "register",
+                           str(tmp_path / "ties.ply"), "--out", str(out), "-q"],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2 and done.stderr.count("\n") == 1, (done.returncode, done.stderr[-2000:])
+    assert done.stderr.startswith("statfit: error:") and not out.exists()
