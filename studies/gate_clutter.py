@@ -84,21 +84,11 @@ def watching(mode: str):
 
 def mask_case(model_name: str, scan_name: str, seed: int) -> dict:
     """studies/mask_clutter.py's scan, fitted with the default (its gate patched): mean vertex error mm."""
-    import torch
-
-    torch.set_num_threads(1)
-    from mask_clutter import SCANS, mask
-    from statfit.core.threads import flush_denormals_everywhere
+    from mask_clutter import made_scan
     from statfit.registration.job import register
     from statfit.structures.scan import Scan
-    from statfit.synth.scanner import realistic_scan
 
-    flush_denormals_everywhere()
-    model = mask(model_name)
-    rng = np.random.default_rng(2000 + seed)
-    clutter, parts = SCANS[scan_name]
-    made = realistic_scan(model.sample(rng), model.faces, rng, yaw_deg=float(rng.uniform(-30, 30)), clutter=clutter,
-                          clutter_parts=parts or ("hair", "neck"), units="mm")
+    model, made = made_scan(model_name, scan_name, seed)
     fit = register(model, Scan.from_mesh(made.vertices, made.faces), "default", threads=1)
     return {"mm": float(np.linalg.norm(fit.vertices - made.truth, axis=1).mean()), "fallback": fit.fallback}
 

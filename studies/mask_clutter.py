@@ -57,22 +57,29 @@ def mask(name: str):
     return face if vertices is None else decimated(face, vertices)
 
 
-def run_case(model_name: str, scan_name: str, seed: int) -> dict:
+def made_scan(model_name: str, scan_name: str, seed: int):
+    """The mask ``model_name`` and its realistic scan ``scan_name`` of person ``seed`` (module
+    docstring): (model, statfit.synth.scanner's scan with its truth)."""
     import torch
 
     torch.set_num_threads(1)
-    from scipy.spatial.transform import Rotation
     from statfit.core.threads import flush_denormals_everywhere
-    from statfit.registration.job import register
-    from statfit.structures.scan import Scan
     from statfit.synth.scanner import realistic_scan
 
     flush_denormals_everywhere()
     model = mask(model_name)
     rng = np.random.default_rng(2000 + seed)
     clutter, parts = SCANS[scan_name]
-    made = realistic_scan(model.sample(rng), model.faces, rng, yaw_deg=float(rng.uniform(-30, 30)), clutter=clutter,
-                          clutter_parts=parts or ("hair", "neck"), units="mm")
+    return model, realistic_scan(model.sample(rng), model.faces, rng, yaw_deg=float(rng.uniform(-30, 30)),
+                                 clutter=clutter, clutter_parts=parts or ("hair", "neck"), units="mm")
+
+
+def run_case(model_name: str, scan_name: str, seed: int) -> dict:
+    from scipy.spatial.transform import Rotation
+    from statfit.registration.job import register
+    from statfit.structures.scan import Scan
+
+    model, made = made_scan(model_name, scan_name, seed)
     scan = Scan.from_mesh(made.vertices, made.faces)
     row = {"model": model_name, "scan": scan_name, "seed": seed, "clutter_ratio": made.clutter_ratio}
     for label, (method, fallback) in FITS.items():
