@@ -251,3 +251,15 @@ def test_version(capsys):
 
     code, out, _ = run(["--version"], capsys)
     assert code == 0 and out.strip() == f"statfit {__version__}"
+
+
+def test_the_cli_starts_without_importing_matplotlib():
+    """matplotlib (0.4 s of every process's start) is imported when a preview is drawn, not by the
+    CLI's modules nor by `batch report`'s, which use the preview's pixel functions only."""
+    import subprocess
+    import sys
+
+    code = ("import sys, statfit_cli.main, statfit.batch.report, statfit.render.preview; "
+            "print('matplotlib' in sys.modules)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and done.stdout.strip() == "False", (done.stdout, done.stderr[-2000:])
