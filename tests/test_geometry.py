@@ -146,8 +146,7 @@ def test_umeyama_exact(rng):
 
 def test_kd_trees_build_while_the_thread_flushes_subnormals():
     """A fit's thread flushes subnormals to zero; SciPy's balanced KD-tree build then recursed
-    without end on coordinates tied at zero (a symmetric model's midline) and the process died of
-    a segmentation fault. Run in a child process, so a crash is a failed test, not a lost worker;
+    without end on many coordinates tied at zero and the process died of a segmentation fault. Run in a child process, so a crash is a failed test, not a lost worker;
     the tree must be the one built without flushing, and the thread's mode restored."""
     import subprocess
     import sys

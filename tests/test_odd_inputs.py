@@ -301,7 +301,7 @@ def test_an_initial_mesh_without_extent_is_refused_for_what_it_is(head_scan, tmp
 
 
 def test_a_scan_whose_points_tie_at_zero_is_refused_not_a_crash(tmp_path):
-    """1,500 of 4,300 points on the plane x = 0 exactly (a symmetric cloud's midline): SciPy's
+    """1,500 of 4,300 points on the plane x = 0 exactly: SciPy's
     KD-tree build recursed without end there while the CLI flushed subnormals, and `statfit
     register` died of a segmentation fault (exit 139, no message). A child process, so a crash
     fails this test instead of killing its worker."""

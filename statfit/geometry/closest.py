@@ -97,6 +97,13 @@ def open_edges(faces: torch.Tensor) -> torch.Tensor:
     return (counts[inverse] == 1).view(-1, 3)
 
 
+def border_vertices(opposite_open: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """The vertices on a mesh's open boundary, sorted, from ``opposite_open`` (F, 3) bool, whether
+    the edge opposite each corner of ``faces`` (F, 3) is open (:func:`open_edges`)."""
+    return np.unique(np.concatenate([faces[opposite_open[:, i]][:, [(i + 1) % 3, (i + 2) % 3]].reshape(-1)
+                                     for i in range(3)]))
+
+
 class ClosestPointQuery:
     """Closest points on a mesh of fixed topology whose vertices move between queries; ``open_edges``
     (F, 3) marks the topology's border edges (:func:`open_edges`)."""

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from statfit.geometry.closest import ClosestPointQuery
+from statfit.geometry.closest import ClosestPointQuery, border_vertices
 from statfit.structures.frame import Frame
 from statfit.renderer import Camera, rasterize
 from statfit.structures.kdtree import kd_tree
@@ -77,13 +77,6 @@ def inside_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
         to_border, _ = kd_tree(vertices[border]).query(nearest, distance_upper_bound=border_band)
         beyond |= to_border < border_band
     return np.where(beyond, np.nan, hit.distance.numpy())
-
-
-def border_vertices(opposite_open: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """The vertices on a mesh's open boundary, sorted, from ``opposite_open`` (F, 3) bool, whether
-    the edge opposite each corner of ``faces`` (F, 3) is open (:func:`statfit.geometry.closest.open_edges`)."""
-    return np.unique(np.concatenate([faces[opposite_open[:, i]][:, [(i + 1) % 3, (i + 2) % 3]].reshape(-1)
-                                     for i in range(3)]))
 
 
 def _summary(values: np.ndarray, scale: float) -> dict[str, float]:
