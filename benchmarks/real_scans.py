@@ -49,7 +49,8 @@ def _model():
 def _person(seed: int, clutter: float, clutter_parts: tuple[str, ...] | None = None):
     """A realistic scan of seed's person: (RealisticScan, units); ``clutter_parts`` as
     :func:`statfit.synth.scanner.realistic_scan`'s (default: all)."""
-    from statfit.synth.scanner import CLUTTER_PARTS, realistic_scan
+    from statfit.synth.scan_options import CLUTTER_PARTS
+    from statfit.synth.scanner import realistic_scan
     from statfit.synth.sample import load_delta
 
     model = _model()

@@ -13,7 +13,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from statfit.errors import StatfitError
-from statfit.core.methods import LANDMARK_WEIGHT, METHODS, landmark_weight as method_landmark_weight
+from statfit.core.method_help import LANDMARK_WEIGHT, PCA_LANDMARK_WEIGHT, SUMMARIES
 
 stderr = Console(stderr=True)
 
@@ -47,7 +47,7 @@ ModelOption = typer.Option(None, "--model", "-m", help="Model npz (v_template, f
                            "Default: the embedded synthetic head.", show_default=False)
 KOption = typer.Option(None, "--k", help="Use only the first K modes of the model.", show_default=False)
 MethodOption = typer.Option("default", help="default (the measured best pipeline) or one method: "
-                            + "; ".join(f"{name}: {method.summary}" for name, method in METHODS.items())
+                            + "; ".join(f"{name}: {summary}" for name, summary in SUMMARIES.items())
                             + ". register's pca is the closed-form Gauss-Newton fit alone; its default adds 200 hybrid steps."
                             " render's default: two hybrid stages, then the Laplacian filter (docs/studies.md §13).")
 FallbackOption = typer.Option(True, "--fallback/--no-fallback", help="register's default only: where its fit leaves "
@@ -77,7 +77,7 @@ QuietOption = typer.Option(False, "--quiet", "-q", help="No progress bar.")
 LandmarkWeightOption = typer.Option(None, help="Weight of the landmark term against the scan's mean squared distance "
                                     "(robust: beyond ~5% of the model's radius off its place, a landmark pulls less the "
                                     "farther it is); 0: the start only.  [default: the method's: "
-                                    f"{LANDMARK_WEIGHT:g}; pca {method_landmark_weight('pca'):g}]",
+                                    f"{LANDMARK_WEIGHT:g}; pca {PCA_LANDMARK_WEIGHT:g}]",
                                     callback=within(0, 1e6), show_default=False)
 JsonOption = typer.Option(False, "--json", help="Print each fit's summary as a JSON line on stdout.")
 IterationsOption = typer.Option(None, help="Iterations (all stages together). Default: the method's.",

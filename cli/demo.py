@@ -6,15 +6,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from statfit.core.methods import METHODS, resolve
-from statfit.geometry.metrics import evaluate, observed_vertices
-from statfit.registration.job import register as fit_scan
-from statfit.synth.sample import sample_target, scan_from_view
-from statfit.model.importers.cache import open_model
 from statfit_cli.common import progress_bar, seed_option, within
-
-
-DEMO_METHODS = ("default", *(name for name, method in METHODS.items() if "register" in method.tuned))
 
 
 def demo(
@@ -30,6 +22,12 @@ def demo(
     shows each method's mean per-vertex error against the ground truth, split into vertices the
     scan observed and those it did not, and the time taken.
     """
+    from statfit.core.methods import METHODS, resolve
+    from statfit.geometry.metrics import evaluate, observed_vertices
+    from statfit.model.importers.cache import open_model
+    from statfit.registration.job import register as fit_scan
+    from statfit.synth.sample import sample_target, scan_from_view
+
     model = open_model(None)
     rng = np.random.default_rng(seed)
     target = sample_target(model, rng, sigma=1.5)
@@ -43,7 +41,7 @@ def demo(
     base = evaluate(model.template, target, model.faces, observed)
     table.add_row("(template)", *(f"{base[k]['mean'] * unit:.2f}" for k in ("all", "observed", "unobserved",
                                                                           "observed_surface")), "-")
-    for method in DEMO_METHODS:
+    for method in ("default", *(name for name, method in METHODS.items() if "register" in method.tuned)):
         total = sum(stage.iterations for stage in resolve(method, iterations=iterations))
         with progress_bar(total, method, not quiet) as advance:
             result = fit_scan(model, points, method, iterations=iterations, on_record=advance, seed=seed)

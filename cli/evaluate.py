@@ -12,11 +12,6 @@ from rich.console import Console
 from rich.table import Table
 
 from statfit.errors import StatfitError
-from statfit.io.mesh import read_mesh, read_points, read_vertex_fields
-from statfit.io.normalmap import camera_for_map, read_normal_map
-from statfit.geometry.metrics import evaluate as evaluate_fit, observed_vertices, visible_vertices
-from statfit.model.statmodel import region_vertices, units_guess
-from statfit.model.importers.cache import open_model
 
 
 MILLIMETRES_PER_UNIT = {"metres": 1000.0, "centimetres": 10.0, "millimetres": 1.0}
@@ -49,6 +44,10 @@ def evaluate(
         statfit eval fit.ply gt.ply --normals normals.exr --camera camera.json
         statfit eval fit.ply gt.ply --model flame.npz --region face
     """
+    from statfit.geometry.metrics import evaluate as evaluate_fit, observed_vertices
+    from statfit.io.mesh import read_mesh, read_points, read_vertex_fields
+    from statfit.model.statmodel import units_guess
+
     if scan is not None and normals is not None:
         raise StatfitError("give --scan or --normals, not both")
     if camera_path is not None and normals is None:
@@ -88,6 +87,9 @@ def evaluate(
 
 def _region_mask(model_path: Path | None, region: str | None, num_vertices: int) -> np.ndarray | None:
     """(N,) bool of the region's vertices, or None without --region."""
+    from statfit.model.importers.cache import open_model
+    from statfit.model.statmodel import region_vertices
+
     if region is None:
         if model_path is not None:
             raise StatfitError("--model goes with --region")
@@ -103,6 +105,9 @@ def _region_mask(model_path: Path | None, region: str | None, num_vertices: int)
 
 
 def _seen_vertices(vertices: np.ndarray, faces: np.ndarray, normals: Path, camera_path: Path | None) -> np.ndarray:
+    from statfit.geometry.metrics import visible_vertices
+    from statfit.io.normalmap import camera_for_map, read_normal_map
+
     normal_map = read_normal_map(normals)
     seen = visible_vertices(vertices, faces, camera_for_map(normal_map, camera_path, normals), normal_map.mask)
     if not seen.any():

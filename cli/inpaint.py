@@ -5,13 +5,7 @@ from pathlib import Path
 
 import typer
 
-from statfit.io.image import encoded_image, image_suffix, read_charts, read_image, read_mask
-from statfit.io.mesh import check_writable
-from statfit.core.device import resolve_device
-from statfit.texture.inpaint import inpaint as fill, inpaint_settings
-from statfit.texture.model import load_texture_model
 from statfit_cli.common import DeviceOption, JsonOption, LogOption, QuietOption
-from statfit_cli.runner import finish, fit_run
 
 
 def inpaint(
@@ -58,6 +52,13 @@ def inpaint(
 
         statfit inpaint face.png --mask holes.png --method laplacian --lam 99 --out blurry.png
     """
+    from statfit.core.device import resolve_device
+    from statfit.io.image import encoded_image, image_suffix, read_charts, read_image, read_mask
+    from statfit.io.mesh import check_writable
+    from statfit.texture.inpaint import inpaint as fill, inpaint_settings
+    from statfit.texture.model import load_texture_model
+    from statfit_cli.runner import finish, fit_run
+
     method = method or ("hybrid" if model_path is not None else "laplacian")
     settings = inpaint_settings(method, iterations, lr, beta, lam)
     torch_device = resolve_device(device)

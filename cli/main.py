@@ -6,10 +6,10 @@ import sys
 import warnings
 
 import typer
+import typer.main
 
 from statfit import __version__
 from statfit.errors import StatfitError
-from statfit.core.threads import flush_denormals_everywhere
 from statfit_cli import batch, demo, evaluate, inpaint, model, register, render, splat, synth, texture
 
 app = typer.Typer(
@@ -42,6 +42,26 @@ model.app.command("build-texture")(texture.build_texture)
 app.add_typer(model.app, name="model")
 
 
+def _set_up_before_each_command(command) -> None:
+    """Make every command of the click tree ``command`` set up the process for fitting once its options
+    are parsed and before its work: subnormals flushed to zero before any parallel kernel, so every
+    worker thread inherits it. ``--help`` and a refused option never get there, so they import no
+    torch (the commands import the library when they run)."""
+    for child in getattr(command, "commands", {}).values():
+        _set_up_before_each_command(child)
+    work = command.callback
+    if work is None or not hasattr(command, "params") or hasattr(command, "commands"):
+        return
+
+    def set_up_then_work(*args, **kwargs):
+        from statfit.core.threads import flush_denormals_everywhere
+
+        flush_denormals_everywhere()
+        return work(*args, **kwargs)
+
+    command.callback = set_up_then_work
+
+
 def _fail(message: str) -> None:
     print(f"statfit: error: {message}", file=sys.stderr)
     raise SystemExit(2)
@@ -50,11 +70,12 @@ def _fail(message: str) -> None:
 def main(argv: list[str] | None = None) -> None:
     """Run the CLI on ``argv`` (default: the process's arguments); user errors, and any fault inside
     a fit, print one line on stderr and exit with code 2."""
-    flush_denormals_everywhere()  # before any parallel kernel, so every worker thread inherits it
+    command = typer.main.get_command(app)
+    _set_up_before_each_command(command)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # library warnings are printed by the commands themselves
         try:
-            code = app(args=argv, standalone_mode=False, prog_name="statfit")
+            code = command(args=argv, standalone_mode=False, prog_name="statfit")
         except StatfitError as exc:
             _fail(str(exc))
         except typer.Abort:

@@ -3,23 +3,16 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import typer
 from rich.console import Console
 from rich.table import Table
 
-from statfit.model.build import build_model_from_files
 from statfit.errors import StatfitError
-from statfit.model.importers import LIGHT_FACE_COUNT, LIGHT_LANDMARKS, import_model, unread_npz_keys
-from statfit.model.importers.makehuman import read_makehuman
-from statfit.model.importers.makehuman_shapes import BodySpace, body_regions, build_body_model
-from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, write_atomic
-from statfit.model.cut import decimated, region_part, rescaled
-from statfit.model.statmodel import StatModel, save_model, units_guess
-from statfit.model.importers.cache import open_model
-from statfit.model.params import posed_shape
-from statfit.model.params_file import read_params
+if TYPE_CHECKING:
+    from statfit.model.statmodel import StatModel
 from statfit_cli.common import QuietOption, SeedOption, count_bar, printed_warnings, seed_option, stage_line, within
 
 
@@ -37,6 +30,8 @@ def _explained(cumulative: np.ndarray, with_last: bool) -> dict[str, float]:
 
 
 def _check_output(out: Path, *inputs: Path) -> None:
+    from statfit.io.mesh import check_writable
+
     check_writable(out)
     if any(out.resolve() == p.resolve() for p in inputs):
         raise StatfitError(f"the output {out} would overwrite an input; choose another path")
@@ -78,6 +73,9 @@ def import_(
 
     Any command's --model also takes the original file directly (imported once, cached).
     """
+    from statfit.model.importers import import_model
+    from statfit.model.statmodel import save_model
+
     _check_output(out, source, *[p for p in (masks, landmarks) if p is not None])
     model = import_model(source, k=k, expressions=expressions, region=region, masks=masks, landmarks=landmarks)
     save_model(model, out)
@@ -99,6 +97,9 @@ def build(
 
         statfit model build registered/*.ply -o mine.npz --k 50
     """
+    from statfit.model.build import build_model_from_files
+    from statfit.model.statmodel import save_model
+
     _check_output(out, *meshes)
     with printed_warnings():
         built = build_model_from_files(meshes, k, seed=seed)
@@ -132,6 +133,10 @@ def build_makehuman(
 
         statfit model build-makehuman ../shared/data/makehuman -o body.npz --k 300 --samples 5000 --seed 0
     """
+    from statfit.model.importers.makehuman import read_makehuman
+    from statfit.model.importers.makehuman_shapes import body_regions, BodySpace, build_body_model
+    from statfit.model.statmodel import save_model
+
     _check_output(out)
     with count_bar("reading MakeHuman's morph targets", not quiet) as advance:
         space = BodySpace(read_makehuman(folder, advance))
@@ -166,6 +171,10 @@ def cut(
 
         statfit model cut ict.npz --region face --vertices 3000 --scale 10 -o face_mask_mm.npz
     """
+    from statfit.model.cut import decimated, region_part, rescaled
+    from statfit.model.importers.cache import open_model
+    from statfit.model.statmodel import save_model, units_guess
+
     _check_output(out, model_path)
     model = open_model(model_path)
     with printed_warnings():
@@ -206,6 +215,11 @@ def sample(
         statfit model sample flame.npz --sigma 2 --seed 1 -o sample.ply
         statfit model sample flame.npz --params fit.params.json -o projection.ply
     """
+    from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, write_atomic
+    from statfit.model.importers.cache import open_model
+    from statfit.model.params import posed_shape
+    from statfit.model.params_file import read_params
+
     if not np.isfinite(sigma) or sigma < 0:
         raise StatfitError("--sigma must be a finite number ≥ 0")
     check_writable(out)
@@ -225,6 +239,10 @@ def info(
     json_out: bool = typer.Option(False, "--json", help="Print as JSON."),
 ) -> None:
     """Vertices, faces, modes, variance explained, bounding box and a guess of the units of a model."""
+    from statfit.model.importers import LIGHT_FACE_COUNT, LIGHT_LANDMARKS, unread_npz_keys
+    from statfit.model.importers.cache import open_model
+    from statfit.model.statmodel import units_guess
+
     model = open_model(model_path)
     extent = np.ptp(model.template, axis=0)
     report = {

@@ -7,20 +7,10 @@ import typer
 
 from statfit.errors import StatfitError
 from statfit.io.files import existing_file
-from statfit.io.mesh import check_writable, load_scan, mesh_bytes, mesh_format
-from statfit.io.landmarks import read_landmarks
-from statfit.core.device import resolve_device
-from statfit.core.methods import fallback as method_fallback, landmark_weight as method_landmark_weight, resolve
-from statfit.registration.job import register as fit_scan
-from statfit.model.importers.cache import open_model
-from statfit.geometry.support import scan_support
-from statfit.model.params import project, vertex_fields
-from statfit.model.params_file import params_bytes, params_suffix
 from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, FallbackOption, IterationsOption, JsonOption,
                                 KOption, LamOption, LandmarkWeightOption, LaplacianOption, LogOption, LrOption,
                                 MethodOption, ModeGainOption, ModelOption, ParamsOption, PowerOption, PresetOption,
                                 QuietOption, SeedOption, ThreadsOption, clutter_choice, setting_overrides, within)
-from statfit_cli.runner import finish, fit_run
 
 
 def register(
@@ -81,6 +71,17 @@ def register(
     The PLY's vertices carry data_distance (to the nearest scan point), observed (0/1) and
     off_span (distance from the model's span), in the scan's units (docs/formats.md).
     """
+    from statfit.core.device import resolve_device
+    from statfit.core.methods import fallback as method_fallback, landmark_weight as method_landmark_weight, resolve
+    from statfit.geometry.support import scan_support
+    from statfit.io.landmarks import read_landmarks
+    from statfit.io.mesh import check_writable, load_scan, mesh_bytes, mesh_format
+    from statfit.model.importers.cache import open_model
+    from statfit.model.params import project, vertex_fields
+    from statfit.model.params_file import params_bytes, params_suffix
+    from statfit.registration.job import register as fit_scan
+    from statfit_cli.runner import finish, fit_run
+
     overrides = setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain)
     clutter_rules = clutter_choice(clutter)
     stages = resolve(method, preset, **overrides)

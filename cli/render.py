@@ -6,21 +6,11 @@ from pathlib import Path
 import typer
 
 from statfit.errors import StatfitError
-from statfit.render.job import camera_space_normals, reconstruct, render_stages, silhouette_sides
-from statfit.io.image import read_mask
-from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_mesh
-from statfit.io.normalmap import apply_mask, camera_for_map, read_normal_map
-from statfit.objectives.normals import SILHOUETTE_WEIGHT
-from statfit.core.device import resolve_device
-from statfit.model.importers.cache import open_model
-from statfit.geometry.support import view_support
-from statfit.model.params import project, vertex_fields
-from statfit.model.params_file import params_bytes, params_suffix
+from statfit.objectives.weights import SILHOUETTE_WEIGHT
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
                                 LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
                                 ParamsOption, PowerOption, PresetOption, QuietOption, SeedOption, SilhouetteOption,
                                 ThreadsOption, setting_overrides, within)
-from statfit_cli.runner import finish, fit_run
 
 PREVIEW_COLOURS = ("normals", "data_distance", "off_span", "observed")
 
@@ -86,6 +76,17 @@ def render(
     observed (0/1: seen in a covered pixel) and off_span (distance from the model's span), in the
     camera's world units (docs/formats.md).
     """
+    from statfit.core.device import resolve_device
+    from statfit.geometry.support import view_support
+    from statfit.io.image import read_mask
+    from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_mesh
+    from statfit.io.normalmap import apply_mask, camera_for_map, read_normal_map
+    from statfit.model.importers.cache import open_model
+    from statfit.model.params import project, vertex_fields
+    from statfit.model.params_file import params_bytes, params_suffix
+    from statfit.render.job import camera_space_normals, reconstruct, render_stages, silhouette_sides
+    from statfit_cli.runner import finish, fit_run
+
     overrides = setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain)
     stages = render_stages(method, preset, region, **overrides)
     torch_device = resolve_device(device, "render")

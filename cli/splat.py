@@ -5,30 +5,20 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import torch
 import typer
 
-from statfit.structures.camera import Camera
-from statfit.core.device import resolve_device
 from statfit.errors import StatfitError
-from statfit.model.importers.cache import open_model
-from statfit.geometry.support import view_support
-from statfit.model.params import project, vertex_fields
-from statfit.model.params_file import params_bytes, params_suffix
 from statfit.io.files import existing_file
-from statfit.io.image import encoded_image, image_suffix
-from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_mesh, write_atomic
-from statfit.io.splats import read_splats, splats_bytes
-from statfit.io.views import read_views
-from statfit.objectives.images import MASK_WEIGHT
-from statfit.renderer.binding import PATTERNS
-from statfit.splat.job import fit_views, render_splats, splat_records, splat_stages, splats_from_records
+from statfit.objectives.weights import MASK_WEIGHT
+if TYPE_CHECKING:
+    from statfit.structures.camera import Camera
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
                                 LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
                                 ParamsOption, PowerOption, PresetOption, QuietOption, SeedOption, ThreadsOption,
                                 setting_overrides, within)
-from statfit_cli.runner import finish, fit_run
 
 MAX_CAMERA_BYTES = 16 << 20
 
@@ -77,6 +67,18 @@ def splat(
     The PLY's vertices carry data_distance (to the nearest point of the fit seen in a training
     view's foreground), observed (0/1) and off_span (distance from the model's span).
     """
+    from statfit.core.device import resolve_device
+    from statfit.geometry.support import view_support
+    from statfit.io.mesh import check_writable, mesh_bytes, mesh_format
+    from statfit.io.splats import splats_bytes
+    from statfit.io.views import read_views
+    from statfit.model.importers.cache import open_model
+    from statfit.model.params import project, vertex_fields
+    from statfit.model.params_file import params_bytes, params_suffix
+    from statfit.renderer.binding import PATTERNS
+    from statfit.splat.job import fit_views, splat_records, splat_stages
+    from statfit_cli.runner import finish, fit_run
+
     if per_triangle not in PATTERNS:
         raise StatfitError(f"--per-triangle must be one of {', '.join(map(str, PATTERNS))}, got {per_triangle}")
     stages = splat_stages(method, preset, **setting_overrides(iterations, lr, beta, power, lam, laplacian,
@@ -138,6 +140,13 @@ def splat_render(
 
         statfit splat-render splats.ply fit.ply --camera views/cameras.json --view 3 --out novel.png
     """
+    from statfit.io.image import encoded_image, image_suffix
+    from statfit.io.mesh import check_writable, read_mesh, write_atomic
+    from statfit.io.splats import read_splats
+    import torch
+
+    from statfit.splat.job import render_splats, splats_from_records
+
     suffix = image_suffix(out)
     check_writable(out)
     camera = _camera(camera_path, view)
@@ -149,6 +158,8 @@ def splat_render(
 
 def _camera(path: Path, view: int | None) -> Camera:
     """The camera in ``path``: a camera JSON, or entry ``view`` of a views folder's cameras.json."""
+    from statfit.structures.camera import Camera
+
     path = existing_file(path, "camera file")
     if path.stat().st_size > MAX_CAMERA_BYTES:
         raise StatfitError(f"{path} is larger than {MAX_CAMERA_BYTES >> 20} MiB: not a camera file")

@@ -7,19 +7,7 @@ import numpy as np
 import typer
 
 from statfit.errors import StatfitError
-from statfit.model.importers.makehuman import read_makehuman
-from statfit.model.importers.makehuman_shapes import BodySpace
-from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, points_bytes, read_mesh, write_atomic
-from statfit.io.normalmap import write_camera, write_normal_map
-from statfit.io.image import write_image
-from statfit.io.landmarks import landmarks_text
-from statfit.io.views import CAMERAS_FILE, views_json
-from statfit.synth.scanner import CLUTTER_PARTS, UNITS_PER_METRE, realistic_scan
-from statfit.synth.sample import camera_for_view, load_delta, sample_target, scan_from_view
-from statfit.renderer.images import render_target
-from statfit.synth.views import generated_albedo, held_out_split, hemisphere_cameras
-from statfit.renderer.images import photograph
-from statfit.model.importers.cache import open_model
+from statfit.synth.scan_options import CLUTTER_PARTS, UNITS_PER_METRE
 from statfit_cli.common import ModelOption, QuietOption, count_bar, seed_option, within
 
 
@@ -41,6 +29,8 @@ def check_delta_options(delta: Path | None, delta_name: str | None) -> None:
 
 def _target(model, rng: np.random.Generator, sigma: float, delta: Path | None, delta_name: str | None,
             delta_weight: float) -> np.ndarray:
+    from statfit.synth.sample import load_delta, sample_target
+
     offset = load_delta(str(delta), delta_name) if delta is not None else None
     return sample_target(model, rng, sigma, offset, delta_weight)
 
@@ -84,6 +74,12 @@ def scan(
         statfit synth scan --model model.npz --seed 3 --out scan.ply --gt gt.ply
         statfit synth scan --model model.npz --seed 3 --realistic --units mm --out scan.ply --gt gt.ply
     """
+    from statfit.io.landmarks import landmarks_text
+    from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, points_bytes, write_atomic
+    from statfit.model.importers.cache import open_model
+    from statfit.synth.sample import scan_from_view
+    from statfit.synth.scanner import realistic_scan
+
     if points < 10:
         raise StatfitError("--points must be at least 10")
     if not 0 <= outliers < 1:
@@ -150,6 +146,12 @@ def normals(
         statfit synth normals --model model.npz --seed 3 --yaw 20 --out normals.exr --camera-out camera.json --gt gt.ply
         statfit synth normals --model body.npz --shape person.ply --yaw 30 --size 768 --out body.exr --camera-out cam.json
     """
+    from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_mesh, write_atomic
+    from statfit.io.normalmap import write_camera, write_normal_map
+    from statfit.model.importers.cache import open_model
+    from statfit.renderer.images import render_target
+    from statfit.synth.sample import camera_for_view
+
     check_delta_options(delta, delta_name)
     if shape_path is not None and delta is not None:
         raise StatfitError("--shape and --delta do not go together: add the delta to the mesh itself")
@@ -194,6 +196,10 @@ def body(
         statfit synth body ../shared/data/makehuman --seed 4 -o person.ply
         statfit synth normals --model body.npz --shape person.ply --yaw 30 --size 768 --out body.exr --camera-out cam.json
     """
+    from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, write_atomic
+    from statfit.model.importers.makehuman import read_makehuman
+    from statfit.model.importers.makehuman_shapes import BodySpace
+
     check_writable(out)
     mesh_format(out)
     with count_bar("reading MakeHuman's morph targets", not quiet) as advance:
@@ -226,6 +232,13 @@ def views(
         statfit synth views --model model.npz --seed 2 --views 24 --size 256 --out views/
         statfit synth views --model ict.npz --delta expressions.npz --delta-name jawOpen --out views/
     """
+    from statfit.io.image import write_image
+    from statfit.io.mesh import mesh_bytes, write_atomic
+    from statfit.io.views import CAMERAS_FILE, views_json
+    from statfit.model.importers.cache import open_model
+    from statfit.renderer.images import photograph
+    from statfit.synth.views import generated_albedo, held_out_split, hemisphere_cameras
+
     check_delta_options(delta, delta_name)
     if out.exists() and not out.is_dir():
         raise StatfitError(f"{out} exists and is not a folder")

@@ -11,9 +11,6 @@ import typer
 from rich.progress import track
 
 from statfit.errors import StatfitError
-from statfit.io.image import IMAGE_SUFFIXES, read_image
-from statfit.io.mesh import check_writable
-from statfit.texture.model import build_texture_model
 from statfit_cli.common import QuietOption, printed_warnings, seed_option, stderr, within
 
 PCA_KINDS = {"auto": None, "exact": False, "randomized": True}
@@ -21,6 +18,8 @@ PCA_KINDS = {"auto": None, "exact": False, "randomized": True}
 
 def image_files(inputs: list[str]) -> list[Path]:
     """Image files named by ``inputs``: files, folders (their images, sorted) and glob patterns."""
+    from statfit.io.image import IMAGE_SUFFIXES
+
     files: list[Path] = []
     for item in inputs:
         path = Path(item)
@@ -77,6 +76,10 @@ def build_texture(
 
         statfit model build-texture textures/*.png -o tex.npz --k 200 --size 256 --jitter 9
     """
+    from statfit.io.image import read_image
+    from statfit.io.mesh import check_writable
+    from statfit.texture.model import build_texture_model
+
     if pca not in PCA_KINDS:
         raise StatfitError(f"unknown --pca {pca!r}; choose auto, exact or randomized")
     if k < 1:

@@ -253,6 +253,24 @@ def test_version(capsys):
     assert code == 0 and out.strip() == f"statfit {__version__}"
 
 
+def test_help_and_refused_options_import_no_fitting_code():
+    """`statfit --help`, every command's help and an option refused before any work answer without
+    importing torch, trimesh or SciPy: 0.4 s instead of 3–4 s (docs/benchmarks.md §17). The commands
+    import the library when they run."""
+    import subprocess
+    import sys
+
+    code = ("import sys\nfrom statfit_cli.main import main\n"
+            "for argv in (['--help'], ['register', '--help'], ['batch', 'render', '--help'], ['model', 'cut', '--help'],"
+            " ['synth', 'scan', '--help'], ['splat', '--help'], ['register', 'scan.ply', '--trim', '2']):\n"
+            "    try:\n        main(argv)\n    except SystemExit as done:\n"
+            "        print(argv[0], done.code, file=sys.stderr)\n"
+            "print(sorted(m for m in ('torch', 'trimesh', 'scipy', 'matplotlib') if m in sys.modules))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and done.stdout.strip().splitlines()[-1] == "[]", (done.stdout[-500:], done.stderr[-2000:])
+    assert done.stderr.count(" 0\n") == 6 and "--trim" in done.stderr and done.stderr.endswith("register 2\n"), done.stderr
+
+
 def test_the_cli_starts_without_importing_matplotlib():
     """matplotlib (0.4 s of every process's start) is imported when a preview is drawn, not by the
     CLI's modules nor by `batch report`'s, which use the preview's pixel functions only."""

@@ -80,8 +80,11 @@ def test_subnormals_are_flushed_on_every_worker_thread(setup, expected):
 
 
 def test_the_cli_flushes_before_any_parallel_kernel():
-    code = ("import sys, torch; from statfit_cli import main as m; from statfit.core.threads import workers_flush_denormals;"
-            "sys.argv=['statfit', '--help'];\ntry: m.main()\nexcept SystemExit: pass\n"
+    """A command flushes once its options are parsed, before its work (here: a scan it then refuses);
+    ``--help`` imports no torch (tests/test_cli.py), so it is not where the flag is set."""
+    code = ("import sys; from statfit_cli import main as m;"
+            "sys.argv=['statfit', 'register', 'no such scan.ply'];\ntry: m.main()\nexcept SystemExit: pass\n"
+            "import torch; from statfit.core.threads import workers_flush_denormals\n"
             "torch.set_num_threads(2); print(workers_flush_denormals(), file=sys.stderr)")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert result.stderr.strip().splitlines()[-1] == "True"

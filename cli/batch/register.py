@@ -5,17 +5,9 @@ from pathlib import Path
 
 import typer
 
-from statfit.batch.fits import FitJob
-from statfit.batch.plan import check_companion_template
-from statfit.core.device import resolve_device
-from statfit.core.methods import fallback as method_fallback, resolve
 from statfit.errors import StatfitError
-from statfit.model.statmodel import region_vertices
-from statfit.registration.prealign import ALIGNMENTS
-from statfit.registration.many import together_for
 from statfit_cli.batch.options import (BatchThreadsOption, ClusterOption, ForceOption, InputsArgument, JsonOption,
                                        OutDirOption, SchedulerOption, TimeoutOption, WorkersOption)
-from statfit_cli.batch.running import check_engine, model_identity, prepared_inputs, run_fits
 from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, FallbackOption, IterationsOption, KOption,
                                 LamOption, LandmarkWeightOption, LaplacianOption, LrOption, MethodOption,
                                 ModeGainOption, ModelOption, PowerOption, PresetOption, QuietOption, SeedOption,
@@ -84,6 +76,15 @@ def batch_register(
         statfit batch register 'scans/*.ply' --out-dir fits/ --device cuda --workers 4   # 4 × 64 scans at once
         statfit batch status fits/
     """
+    from statfit.batch.fits import FitJob
+    from statfit.batch.plan import check_companion_template
+    from statfit.core.device import resolve_device
+    from statfit.core.methods import fallback as method_fallback, resolve
+    from statfit.model.statmodel import region_vertices
+    from statfit.registration.many import together_for
+    from statfit.registration.prealign import ALIGNMENTS
+    from statfit_cli.batch.running import check_engine, model_identity, prepared_inputs, run_fits
+
     check_engine(scheduler, cluster)
     overrides = setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain)
     stages = resolve(method, preset, **overrides)

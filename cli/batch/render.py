@@ -2,21 +2,16 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 
-from statfit.batch.fits import FitJob
-from statfit.batch.plan import Item
-from statfit.core.device import resolve_device
 from statfit.errors import StatfitError
-from statfit.io.normalmap import read_camera, read_normal_map
-from statfit.model.statmodel import region_vertices
-from statfit.objectives.normals import SILHOUETTE_WEIGHT
-from statfit.render.job import ALIGNMENTS, NORMAL_CONVENTIONS, NORMAL_SPACES, render_stages, silhouette_sides
-from statfit.render.many import together_for
+from statfit.objectives.weights import SILHOUETTE_WEIGHT
+if TYPE_CHECKING:
+    from statfit.batch.plan import Item
 from statfit_cli.batch.options import (BatchThreadsOption, ClusterOption, ForceOption, InputsArgument, JsonOption,
                                        OutDirOption, SchedulerOption, TimeoutOption, WorkersOption)
-from statfit_cli.batch.running import check_engine, model_identity, prepared_inputs, run_fits
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, KOption, LamOption, LaplacianOption,
                                 LrOption, MethodOption, ModeGainOption, ModelOption, PowerOption, PresetOption,
                                 QuietOption, SeedOption, SilhouetteOption, setting_overrides, within)
@@ -75,6 +70,14 @@ def batch_render(
         statfit batch render 'maps/*.exr' --out-dir fits/ --params    # fits/<map>.params.json too
         statfit batch render 'maps/*.exr' --out-dir fits/ --device cuda --workers 4   # many maps at once a worker
     """
+    from statfit.batch.fits import FitJob
+    from statfit.core.device import resolve_device
+    from statfit.io.normalmap import read_camera
+    from statfit.model.statmodel import region_vertices
+    from statfit.render.job import ALIGNMENTS, NORMAL_CONVENTIONS, NORMAL_SPACES, render_stages, silhouette_sides
+    from statfit.render.many import together_for
+    from statfit_cli.batch.running import check_engine, model_identity, prepared_inputs, run_fits
+
     check_engine(scheduler, cluster)
     if camera_path is not None and camera_from_header:
         raise StatfitError("use either --camera FILE or --camera-from-header, not both")
@@ -110,6 +113,8 @@ ASSUMED_PIXELS = 1024 * 1024
 def _map_pixels(items: list[Item]) -> int:
     """The pixel count of the first readable map of the first few ``items`` (a batch's maps are
     usually of one size), else :data:`ASSUMED_PIXELS`."""
+    from statfit.io.normalmap import read_normal_map
+
     for item in items[:8]:
         try:
             return int(read_normal_map(item.source).mask.size)

@@ -7,9 +7,6 @@ from pathlib import Path
 
 import typer
 
-from statfit.batch.report import csv_text, read_batch, report_rows
-from statfit.batch.report_page import report_html
-from statfit.io.mesh import check_writable, write_atomic
 from statfit_cli.common import PROGRESS_LINE_SECONDS
 
 
@@ -32,6 +29,10 @@ def report(
         statfit batch report fits/
         statfit batch report fits/ --out review/fits.html --csv review/fits.csv
     """
+    from statfit.batch.report import csv_text, read_batch, report_rows
+    from statfit.batch.report_page import report_html
+    from statfit.io.mesh import check_writable, write_atomic
+
     batch = read_batch(out_dir)
     page, table = out or out_dir / "report.html", csv_path or out_dir / "report.csv"
     for target in (page, table):

@@ -16,6 +16,7 @@ from typing import Any, Callable
 import torch
 
 from statfit.errors import StatfitError
+from statfit.core.method_help import LANDMARK_WEIGHT, PCA_LANDMARK_WEIGHT, SUMMARIES
 from statfit.core.filters import HybridFilter, IdentityFilter, LaplacianFilter, StatisticalFilter
 from statfit.core.fit import Parametrization
 from statfit.core.optim import Adam, Optimizer, UniformAdam
@@ -29,9 +30,6 @@ PAPER_ITERATIONS = {"register": 500, "render": 3000}
 # §9); this only bounds it.
 GAUSS_NEWTON_ITERATIONS = 200
 SPLAT_ITERATIONS = 400
-# The landmark term's weight (against the scan's mean squared distance) unless a method says
-# otherwise: docs/studies.md §12 (the default's landmarks at 0.39x the start-only error at 10).
-LANDMARK_WEIGHT = 10.0
 
 Builder = Callable[[Settings, FitSpace, torch.Tensor], tuple[Parametrization, Optimizer]]
 
@@ -138,14 +136,14 @@ def load_plugins() -> list[str]:
 # ≤ 1.3% better on faces, equal on digits; λ = 19 the Laplacian's best on both; 1000 iterations
 # were slightly worse than 300).
 for _method in (
-    Method("statistical", filtered_method(statistical_filter), summary="x = x0 + F u, F = αUUᵀ + (1 − α)I",
+    Method("statistical", filtered_method(statistical_filter), summary=SUMMARIES["statistical"],
            paper=Settings("statistical", 500, 0.01, beta=30.0),
            tuned={"register": Settings("statistical", 1000, 0.05, beta=1000.0, mode_gain=1.0),
                   "render": Settings("statistical", 3000, 0.01, beta=1000.0, mode_gain=1.0),
                   "inpaint": Settings("statistical", 300, 0.01, beta=30.0),
                   "splat": Settings("statistical", SPLAT_ITERATIONS, 0.05, beta=1000.0, mode_gain=1.0)}),
     Method("laplacian", filtered_method(laplacian_filter), needs_model=False,
-           summary="x = x0 + (I + λL)⁻¹ u (Nicolet et al. 2021)",
+           summary=SUMMARIES["laplacian"],
            paper=Settings("laplacian", 500, 0.01, lam=19.0),
            # register's: also the default's fallback refit; its step settles over the last half, so a
            # nudge of the scan no scanner could see no longer sends the fit elsewhere (docs/studies.md §30)
@@ -153,24 +151,24 @@ for _method in (
                   "render": Settings("laplacian", 3000, 0.003, lam=19.0),
                   "inpaint": Settings("laplacian", 300, 0.01, lam=19.0),
                   "splat": Settings("laplacian", SPLAT_ITERATIONS, 0.003, lam=19.0)}),
-    Method("hybrid", filtered_method(hybrid_filter), summary="x = x0 + F u, F = αUUᵀ + (1 − α)(I + λL)⁻¹",
+    Method("hybrid", filtered_method(hybrid_filter), summary=SUMMARIES["hybrid"],
            paper=Settings("hybrid", 500, 0.01, beta=30.0, lam=19.0),
            tuned={"register": Settings("hybrid", 1000, 0.03, beta=30.0, lam=19.0),
                   "render": Settings("hybrid", 3000, 0.01, beta=30.0, lam=19.0, mode_gain=1.0),
                   "inpaint": Settings("hybrid", 300, 0.01, beta=30.0, lam=19.0),
                   "splat": Settings("hybrid", SPLAT_ITERATIONS, 0.01, beta=30.0, lam=19.0, mode_gain=1.0)}),
-    Method("pca", _pca, summary="x = x̄ + U diag(std) c: the model's coefficients only",
+    Method("pca", _pca, summary=SUMMARIES["pca"],
            paper=Settings("pca", 500, 5.0),
            tuned={"register": Settings("pca", GAUSS_NEWTON_ITERATIONS, 0.0, optimizer="gauss-newton", noise=0.003),
                   "render": Settings("pca", 3000, 0.05),
                   "inpaint": Settings("pca", 300, 0.01),
                   "splat": Settings("pca", SPLAT_ITERATIONS, 0.05)},
-           landmark_weight=1.0),   # §12: its span is all it can move; a heavier term bends it out of shape
-    Method("regularized", _regularized, summary="free x, prior β/N ‖(I − UUᵀ)(x − x̄)‖²",
+           landmark_weight=PCA_LANDMARK_WEIGHT),
+    Method("regularized", _regularized, summary=SUMMARIES["regularized"],
            paper=Settings("regularized", 500, 0.01, beta=10.0),
            tuned={"register": Settings("regularized", 1000, 0.1, beta=30.0),
                   "render": Settings("regularized", 3000, 0.01, beta=10.0)}),
-    Method("none", _none, needs_model=False, summary="free x, Adam",
+    Method("none", _none, needs_model=False, summary=SUMMARIES["none"],
            paper=Settings("none", 500, 0.01),
            tuned={"register": Settings("none", 1000, 0.003),
                   "render": Settings("none", 3000, 0.001),

@@ -11,7 +11,7 @@ took 6× its quiet time on two threads, 1.2× on the one chosen). ``threads`` ov
 Filtered gradients and Adam moments decay to subnormal floats, which CPUs process ~100× slower.
 ``torch.set_flush_denormal`` sets the flag on the calling thread only, and OpenMP worker threads
 copy it when they are created, not later: :func:`flush_denormals_everywhere` must run before the
-first parallel kernel (the CLI does it at start-up); :func:`workers_flush_denormals` checks.
+first parallel kernel (the CLI does it before each command's work); :func:`workers_flush_denormals` checks.
 """
 from __future__ import annotations
 

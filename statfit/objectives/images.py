@@ -17,9 +17,8 @@ import torch.nn.functional as F
 from statfit.core.optim import Adam
 from statfit.structures.camera import Camera
 from statfit.renderer import MeshSplats, render_surfels
+from statfit.objectives.weights import MASK_WEIGHT, SSIM_WEIGHT
 
-SSIM_WEIGHT = 0.2
-MASK_WEIGHT = 0.1
 # Adam step sizes of the splats' parameters (on their logits / logs).
 SPLAT_LR = {"colour_logit": 0.03, "opacity_logit": 0.03, "log_scale": 0.01, "angle": 0.01}
 SSIM_WINDOW = 11

@@ -29,8 +29,8 @@ import torch
 from statfit.errors import StatfitError
 from statfit.renderer import Camera, MeshAdjacency
 from statfit.renderer.steady import SteadyRenderer
+from statfit.objectives.weights import SILHOUETTE_WEIGHT
 
-SILHOUETTE_WEIGHT = 1.0
 SPREAD = 1024       # partial sums per view on a GPU (per_view_sums)
 
 

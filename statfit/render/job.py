@@ -30,7 +30,8 @@ from statfit.structures.normal_map import NormalMap
 from statfit.core.methods import resolve
 from statfit.core.settings import FitSpace, Settings
 from statfit.model.statmodel import StatModel, region_triangles
-from statfit.objectives.normals import SILHOUETTE_WEIGHT, NormalMapObjective
+from statfit.objectives.normals import NormalMapObjective
+from statfit.objectives.weights import SILHOUETTE_WEIGHT
 from statfit.core.runaway import check_not_runaway
 from statfit.render.framing import check_framing, checked_init
 from statfit.render.visibility import alignment_visibility, visibility_options

@@ -26,7 +26,8 @@ from statfit.core.threads import choose_threads, intra_op_threads
 from statfit.core.together import FitOutcome, Member, fits_in_memory, run_stages_together
 from statfit.errors import StatfitError
 from statfit.model.statmodel import StatModel
-from statfit.objectives.normals import SILHOUETTE_WEIGHT, NormalMapObjective
+from statfit.objectives.normals import NormalMapObjective
+from statfit.objectives.weights import SILHOUETTE_WEIGHT
 from statfit.render.job import RENDER_FLOATS_PER_PIXEL, PosedView, checked_stages, silhouette_sides
 from statfit.render.visibility import visibility_options
 from statfit.renderer import Camera

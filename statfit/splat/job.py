@@ -28,7 +28,8 @@ from statfit.structures.frame import Frame
 from statfit.io.splats import COLOURS, RECORD
 from statfit.core.methods import resolve
 from statfit.model.statmodel import StatModel
-from statfit.objectives.images import MASK_WEIGHT, ImageObjective, TrainingView, psnr, ssim
+from statfit.objectives.images import ImageObjective, TrainingView, psnr, ssim
+from statfit.objectives.weights import MASK_WEIGHT
 from statfit.core.pose import camera_in_frame
 from statfit.core.settings import FitSpace, Settings
 from statfit.renderer import MeshSplats, render_surfels

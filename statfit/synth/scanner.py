@@ -19,15 +19,12 @@ from statfit.geometry.align import Similarity
 from statfit.errors import StatfitError
 from statfit.structures.frame import Frame, surface_vertices
 from statfit.synth.sample import view_direction
+from statfit.synth.scan_options import CLUTTER_PARTS, UNITS_PER_METRE
 
-# Length units a scan may come in, as multiples of a metre.
-UNITS_PER_METRE = {"m": 1.0, "cm": 100.0, "mm": 1000.0}
 # Hits whose surface turns away from the rays beyond this (cosine) are lost, as in a real scanner.
 GRAZING_COSINE = 0.2
 # Two neighbouring grid hits are joined only if their depths differ by less than this many grid steps.
 DEPTH_JUMP_STEPS = 4.0
-# What clutter a realistic scan can hold: hair over the scalp, a neck and shoulders tube below.
-CLUTTER_PARTS = ("hair", "neck")
 # The hair layer's thickness and the tube's length, in the shape's RMS radii.
 HAIR_THICKNESS = 0.08
 TUBE_LENGTH = 1.2
