@@ -38,6 +38,18 @@ def test_synth_views_writes_photographs_cameras_and_the_truth(views):
     assert read_mesh(views / "gt.ply")[0].shape == (4842, 3)
 
 
+def test_a_coarse_model_gets_photographs_too():
+    """A model of fewer vertices than the albedo has spots (80) was an internal failure ("Cannot take
+    a larger sample than population"): now a spot on each vertex at most. A tetrahedron: a colour
+    per vertex, in range, not all alike."""
+    from statfit.synth.views import generated_albedo
+
+    vertices = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float)
+    colour = generated_albedo(vertices, np.random.default_rng(0))
+    assert colour.shape == (4, 3) and (colour >= 0.02).all() and (colour <= 0.98).all()
+    assert np.ptp(colour, axis=0).min() > 0.01
+
+
 def test_cameras_cover_the_front_hemisphere():
     cameras = hemisphere_cameras(np.random.default_rng(0).normal(size=(50, 3)), 24, 32)
     towards = np.stack([c.center.numpy() for c in cameras])

@@ -19,7 +19,7 @@ def check_framing(template: np.ndarray, camera: Camera, mask: np.ndarray, align:
     if not mask.any():
         raise StatfitError("the normal map's mask has no foreground pixel")
     if (count := int(mask.sum())) < MIN_FOREGROUND:     # no surface, nor its size against the model's (units)
-        raise StatfitError(f"the normal map shows {count} foreground pixels: too few (at least {MIN_FOREGROUND})")
+        raise StatfitError(f"the normal map shows {count} foreground pixel{'' if count == 1 else 's'}: too few (at least {MIN_FOREGROUND})")
     ratio = image_ratio(template, camera, mask)
     if align != "similarity" and not 1 / UNIT_MISMATCH_FACTOR < ratio < UNIT_MISMATCH_FACTOR:
         raise StatfitError(f"the model's image is {ratio:.3g} times the size of the normal map's silhouette: are the "

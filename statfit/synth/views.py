@@ -22,13 +22,14 @@ SKIN = np.array([0.78, 0.57, 0.47])
 
 def generated_albedo(vertices: np.ndarray, rng: np.random.Generator, spots: int = 80) -> np.ndarray:
     """Per-vertex colours (N, 3) in [0.02, 0.98]: a skin tone, slow variations, darker spots of
-    several sizes and fine noise, so that photographs have texture to match; made in the shape's
-    unit frame (the same pattern whatever its units)."""
+    several sizes (``spots`` of them, at most one a vertex) and fine noise, so that photographs have
+    texture to match; made in the shape's unit frame (the same pattern whatever its units)."""
     points = Frame.of(vertices).to_unit(vertices)
     colour = np.tile(SKIN * rng.uniform(0.8, 1.1), (len(points), 1))
     for _ in range(3):
         wave = rng.normal(size=3) * 3.0
         colour *= 1.0 + 0.08 * np.sin(points @ wave + rng.uniform(0, 2 * np.pi))[:, None]
+    spots = min(spots, len(points))     # a coarse mesh: a spot on each vertex at most
     centres = points[rng.choice(len(points), spots, replace=False)]
     radii = rng.uniform(0.04, 0.15, spots)
     tints = rng.uniform(0.15, 0.45, (spots, 1)) * np.array([0.6, 1.0, 1.0])
