@@ -175,3 +175,25 @@ def test_moving_the_mesh_moves_its_splats():
                                      vertices[faces[:, 2]] - vertices[faces[:, 0]], dim=1) @ rotation.T
     face_normal = face_normal / face_normal.norm(dim=1, keepdim=True)
     torch.testing.assert_close(normal, face_normal.repeat_interleave(3, dim=0))
+
+
+def test_a_zero_area_triangle_changes_nothing_and_spreads_no_nan():
+    """A model with a collapsed triangle (all three corners one vertex; found by a fuzz of odd models,
+    where every `statfit splat` fit of it ended "diverged at iteration 1"): its splat has no axes, so
+    it is never drawn, and its 0/0 must not reach the gradient. The image and the vertices' gradient
+    are those of the mesh without it."""
+    vertices, faces = _tetrahedron()
+    collapsed = torch.cat([faces, faces[:1, :1].repeat(1, 3)])
+    camera = _camera(16, 16)
+    weights = torch.tensor(np.random.default_rng(3).uniform(size=(16, 16, 3)))
+    results = []
+    for mesh_faces in (faces, collapsed):
+        corners = vertices.clone().requires_grad_(True)
+        splats = MeshSplats.on(mesh_faces, 3, dtype=torch.float64)
+        image = render_surfels(splats.surfels(corners), camera)
+        (image.colour * weights).sum().backward()
+        results.append((image.colour.detach(), corners.grad))
+    (clean_image, clean_grad), (image, grad) = results
+    assert torch.isfinite(grad).all()
+    torch.testing.assert_close(image, clean_image, rtol=0, atol=1e-12)
+    torch.testing.assert_close(grad, clean_grad, rtol=1e-9, atol=1e-12)

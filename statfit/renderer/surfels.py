@@ -150,9 +150,11 @@ def _pair_alpha(splat: torch.Tensor, pixel: torch.Tensor, rays: torch.Tensor, ce
                 axis_a: torch.Tensor, axis_b: torch.Tensor, normal: torch.Tensor, opacity: torch.Tensor,
                 K: torch.Tensor, width: int) -> torch.Tensor:
     """α (M,) of every pair: opacity × max(surfel Gaussian at the ray–plane hit, low-pass filter)."""
-    # With r = t·d − c on the plane n·x = n·c (t = n·c / n·d): u = r·a/‖a‖², v = r·b/‖b‖².
-    dir_a = axis_a / axis_a.square().sum(dim=0)
-    dir_b = axis_b / axis_b.square().sum(dim=0)
+    # With r = t·d − c on the plane n·x = n·c (t = n·c / n·d): u = r·a/‖a‖², v = r·b/‖b‖². A splat of
+    # a zero-area triangle has no axes (a = b = 0): 0, not 0/0, whose NaN its gradient would spread.
+    tiny = torch.finfo(axis_a.dtype).tiny
+    dir_a = axis_a / axis_a.square().sum(dim=0).clamp_min(tiny)
+    dir_b = axis_b / axis_b.square().sum(dim=0).clamp_min(tiny)
     per_splat = torch.cat([normal, dir_a, dir_b, torch.stack([(normal * centre).sum(dim=0),
                                                               (dir_a * centre).sum(dim=0),
                                                               (dir_b * centre).sum(dim=0)])])   # (12, P)
