@@ -41,7 +41,7 @@ def demo(
     base = evaluate(model.template, target, model.faces, observed)
     table.add_row("(template)", *(f"{base[k]['mean'] * unit:.2f}" for k in ("all", "observed", "unobserved",
                                                                           "observed_surface")), "-")
-    for method in ("default", *(name for name, method in METHODS.items() if "register" in method.tuned)):
+    for method in ("default", *(name for name, entry in METHODS.items() if "register" in entry.tuned)):
         total = sum(stage.iterations for stage in resolve(method, iterations=iterations))
         with progress_bar(total, method, not quiet) as advance:
             result = fit_scan(model, points, method, iterations=iterations, on_record=advance, seed=seed)
