@@ -240,7 +240,7 @@ def test_a_normal_map_of_a_few_pixels_is_refused_for_what_it_is(tmp_path):
     write_image(tmp_path / "mask.png", mask)
     code, err = run_cli(["render", str(normals), "--camera", str(camera), "--mask", str(tmp_path / "mask.png"),
                          "--out", str(tmp_path / "fit.ply"), "-q"])
-    assert code == 2 and err.count("\n") == 1 and "1 foreground pixels" in err, err
+    assert code == 2 and err.count("\n") == 1 and "1 foreground pixel:" in err, err
     assert not (tmp_path / "fit.ply").exists()
 
 
