@@ -41,6 +41,12 @@ def visible_vertices(vertices: np.ndarray, faces: np.ndarray, camera: Camera, ma
     return visible
 
 
+# A mesh whose surface, summed, faces one way by more than this share of its area is of part of a
+# subject (a face mask: ~0.45; heads cut at the neck: 0.06-0.18): render's `auto` silhouette is
+# one-sided for it (docs/studies.md §18), and the pose search scores it from both sides (§37).
+PARTIAL_FACING_SHARE = 0.3
+
+
 def facing_share(vertices: np.ndarray, faces: np.ndarray) -> float:
     """|Σ area-weighted triangle normals| / total area of the mesh (vertices (N, 3), faces (F, 3)):
     0 for a closed surface, 0.5 for a hemisphere shell, 1 for a flat sheet. A face mask (the front

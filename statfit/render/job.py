@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from statfit.geometry.align import Similarity, compose
-from statfit.geometry.metrics import facing_share
+from statfit.geometry.metrics import PARTIAL_FACING_SHARE, facing_share
 from statfit.errors import StatfitError
 from statfit.core.fit import StageTimer
 from statfit.structures.frame import Frame
@@ -44,10 +44,6 @@ from statfit.core.threads import choose_threads, intra_op_threads
 ALIGNMENTS = ("none", "rigid", "similarity")
 NORMAL_SPACES = ("world", "camera")
 SILHOUETTES = ("auto", "two-sided", "one-sided", "covering")
-# A model whose surface, summed, faces one way by more than this share of its area is of part of the
-# subject (a face mask: ~0.45; heads cut at the neck: 0.06-0.18): `auto` gives it the one-sided
-# silhouette term (docs/studies.md §18: the mask fitted to whole-head maps 1.7-2x closer).
-PARTIAL_FACING_SHARE = 0.3
 NORMAL_CONVENTIONS = ("opencv", "opengl")
 POSE_ITERATIONS = 200
 POSE_LR = 0.01

@@ -1,10 +1,13 @@
 """Step 6 of the pose search: how well a pose explains the scan, and when no pose is plausible."""
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
+from scipy.spatial import cKDTree
 
 from statfit.errors import StatfitError
-from statfit.registration.pose.hypotheses import Poses
+from statfit.registration.pose.hypotheses import VISIBLE_COSINE, Poses
 from statfit.registration.pose.icp import Matcher
 
 TOLERANCE = 0.05           # truncation of the score, model RMS radii (≈ 5 mm on a head)
@@ -19,14 +22,42 @@ MIN_MATCHED = 0.3          # fewer scan points than this within TOLERANCE: no pa
 EXPLAINED = 0.75
 
 
-def score_poses(matcher: Matcher, points: np.ndarray, normals: np.ndarray, poses: Poses, tolerance: float = TOLERANCE
-                ) -> tuple[np.ndarray, np.ndarray]:
-    """Truncated residual (H,) in [0, 1] and matched share (H,) of each pose."""
+@dataclass(frozen=True)
+class ScanCover:
+    """The scan as the model's side of a score sees it: a KD-tree of its points (the search's unit
+    frame) and the scanner's direction ``facing`` (3,), the scan's mean normal."""
+
+    tree: cKDTree
+    facing: np.ndarray
+
+
+def score_poses(matcher: Matcher, points: np.ndarray, normals: np.ndarray, poses: Poses, tolerance: float = TOLERANCE,
+                cover: ScanCover | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Truncated residual (H,) in [0, 1] and matched share (H,) of each pose. With ``cover`` (a model
+    of part of a subject, as a face mask is), the residual is averaged with the model's side of it
+    (:func:`unsupported_share`): a mask explains about half of a head's scan wherever it lies on the
+    head, and only its own surface, which nothing supports off the face, tells where it belongs."""
     local = poses.to_model(points)
     _, _, distance, agree = matcher(local, np.einsum("mi,hij->hmj", normals, poses.rotation))
     inlier = agree & (distance < tolerance)
     capped = np.where(agree, np.minimum(distance / tolerance, 1.0) ** 2, 1.0)
-    return capped.mean(axis=1), inlier.mean(axis=1)
+    if cover is None:
+        return capped.mean(axis=1), inlier.mean(axis=1)
+    return (capped.mean(axis=1) + unsupported_share(matcher, poses, cover, tolerance)) / 2, inlier.mean(axis=1)
+
+
+def unsupported_share(matcher: Matcher, poses: Poses, cover: ScanCover, tolerance: float) -> np.ndarray:
+    """The model's side of the score (H,) in [0, 1]: each of its vertices that faces the scanner in a
+    pose at its squared distance to the nearest scan point over ``tolerance``², capped at 1; each
+    other vertex (turned away: a scanner cannot have seen it) at the cap."""
+    placed = poses.scale[:, None, None] * np.einsum("nj,hij->hni", matcher.vertices, poses.rotation) \
+        + poses.translation[:, None]                                                      # (H, N, 3)
+    towards_scanner = np.einsum("hji,j->hi", poses.rotation, cover.facing)                  # Rᵀ facing (H, 3)
+    seen = np.einsum("ni,hi->hn", matcher.normals, towards_scanner) > VISIBLE_COSINE       # (H, N)
+    capped = np.ones(seen.shape)
+    distance, _ = cover.tree.query(placed[seen])
+    capped[seen] = np.minimum(distance / tolerance, 1.0) ** 2
+    return capped.mean(axis=1)
 
 
 def check_plausible(matched: float, explained: float, coefficients: np.ndarray, tolerance: float,

@@ -33,8 +33,11 @@ back to front, turned by 90°). So:
 6. **Score** (the refinement's; the polish's where it overruled): a truncated residual — each
    point's squared distance capped at TOLERANCE², a point whose normal disagrees counting as the
    cap — over the cap: 0 is a perfect fit, 1 nothing
-   matched. The runner-up (another pose ≥ DISTINCT_DEGREES away) within AMBIGUITY of the best
-   marks the result ambiguous; too few matched points, or a fit that needs implausible
+   matched. A model of part of a subject (a face mask: its surface faces one way,
+   :data:`statfit.geometry.metrics.PARTIAL_FACING_SHARE`) is scored from both sides in steps 3–4:
+   the scan's points on the model and the model's vertices facing the scanner on the scan, since a
+   mask explains about half of a head's scan wherever it lies (docs/studies.md §37). The runner-up
+   (another pose ≥ DISTINCT_DEGREES away) within AMBIGUITY of the best marks the result ambiguous; too few matched points, or a fit that needs implausible
    coefficients (a sphere, a plane), refuse the scan. A scan that already lies on
    the model, in its units, scoring within KEEP_FRAME of the best pose, is left where it is.
 
@@ -54,13 +57,15 @@ from scipy.spatial.transform import Rotation
 from statfit.core.threads import map_in_threads, task_threads
 from statfit.errors import StatfitError, StatfitWarning
 from statfit.geometry.align import Similarity
+from statfit.geometry.metrics import PARTIAL_FACING_SHARE, facing_share
 from statfit.model.statmodel import StatModel, face_triangles, scalp_triangles
 from statfit.registration.hair import hair_suspects
 from statfit.registration.pose.hypotheses import DISTINCT_DEGREES, angle_between, distinct_poses, hypothesis_starts
 from statfit.registration.pose.icp import Matcher, trimmed_icp
 from statfit.registration.pose.refinement import ROUNDS, polish_pose, refine_with_first_modes, scaled_modes
-from statfit.registration.pose.scoring import TOLERANCE, check_plausible, score_poses
+from statfit.registration.pose.scoring import TOLERANCE, ScanCover, check_plausible, score_poses
 from statfit.structures.frame import Frame
+from statfit.structures.kdtree import kd_tree
 from statfit.structures.scan import Scan
 
 SCALE_RANGE = 1.35
@@ -145,11 +150,13 @@ def estimate_pose(model: StatModel, scan: Scan, seed: int = 0, threads: int | No
     facing = scan.normals.mean(axis=0)
     facing = facing / max(np.linalg.norm(facing), 1e-12)
     bounds = (1 / SCALE_RANGE, SCALE_RANGE)
+    # a model of part of a subject (a face mask) is scored from both sides: the scan's and its own
+    cover = ScanCover(kd_tree(points), facing) if facing_share(mean, model.faces) > PARTIAL_FACING_SHARE else None
     starts = hypothesis_starts(mean, matcher.normals, facing)
     poses = trimmed_icp(matcher, points[few], scan.normals[few], starts, SCREEN_ROUNDS, bounds)
-    screened = np.argsort(score_poses(matcher, points[few], scan.normals[few], poses)[0])[:SCREENED]
+    screened = np.argsort(score_poses(matcher, points[few], scan.normals[few], poses, cover=cover)[0])[:SCREENED]
     poses = trimmed_icp(matcher, points[few], scan.normals[few], poses.subset(screened), ROUNDS - SCREEN_ROUNDS, bounds)
-    score, _ = score_poses(matcher, points[few], scan.normals[few], poses)
+    score, _ = score_poses(matcher, points[few], scan.normals[few], poses, cover=cover)
     facing_scanner = poses.rotation[:, :, 2] @ facing > FACING_MIN    # the model's +z (its face) towards the scanner
     candidates = distinct_poses(poses, np.argsort(np.where(facing_scanner, score, np.inf)), REFINED)
 
