@@ -34,11 +34,12 @@ back to front, turned by 90°). So:
    point's squared distance capped at TOLERANCE², a point whose normal disagrees counting as the
    cap — over the cap: 0 is a perfect fit, 1 nothing
    matched. A model of part of a subject (a face mask: its surface faces one way,
-   :data:`statfit.geometry.metrics.PARTIAL_FACING_SHARE`) is scored from both sides in steps 3–4:
-   the scan's points on the model and the model's vertices facing the scanner on the scan, since a
-   mask explains about half of a head's scan wherever it lies (docs/studies.md §37). The runner-up
-   (another pose ≥ DISTINCT_DEGREES away) within AMBIGUITY of the best marks the result ambiguous; too few matched points, or a fit that needs implausible
-   coefficients (a sphere, a plane), refuse the scan. A scan that already lies on
+   :data:`statfit.geometry.metrics.PARTIAL_FACING_SHARE`) is screened and its candidates for step 4
+   chosen by a score from both sides: the scan's points on the model and the model's vertices
+   facing the scanner on the scan, since a mask explains about half of a head's scan wherever it
+   lies (docs/studies.md §37). The runner-up (another pose ≥ DISTINCT_DEGREES away) within
+   AMBIGUITY of the best marks the result ambiguous; too few matched points, or a fit that needs
+   implausible coefficients (a sphere, a plane), refuse the scan. A scan that already lies on
    the model, in its units, scoring within KEEP_FRAME of the best pose, is left where it is.
 
 Everything runs in the model's unit frame (:class:`statfit.structures.frame.Frame`), so no threshold
