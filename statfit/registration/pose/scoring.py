@@ -55,7 +55,8 @@ def unsupported_share(matcher: Matcher, poses: Poses, cover: ScanCover, toleranc
     towards_scanner = np.einsum("hji,j->hi", poses.rotation, cover.facing)                  # Rᵀ facing (H, 3)
     seen = np.einsum("ni,hi->hn", matcher.normals, towards_scanner) > VISIBLE_COSINE       # (H, N)
     capped = np.ones(seen.shape)
-    distance, _ = cover.tree.query(placed[seen], distance_upper_bound=tolerance)   # beyond it: ∞, capped as before
+    # bounded at the cap: a vertex beyond it gets ∞, which the cap makes 1 as its own distance would
+    distance, _ = cover.tree.query(placed[seen], distance_upper_bound=tolerance)
     capped[seen] = np.minimum(distance / tolerance, 1.0) ** 2
     return capped.mean(axis=1)
 
