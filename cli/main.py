@@ -50,7 +50,7 @@ def _set_up_before_each_command(command) -> None:
     for child in getattr(command, "commands", {}).values():
         _set_up_before_each_command(child)
     work = command.callback
-    if work is None or not hasattr(command, "params") or hasattr(command, "commands"):
+    if work is None or hasattr(command, "commands"):      # a group's own callback: not a command's work
         return
 
     def set_up_then_work(*args, **kwargs):

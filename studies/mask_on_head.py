@@ -25,8 +25,8 @@ scan's own pose: the cut keeps the head's vertex positions. Variants (the first 
 """
 from __future__ import annotations
 
-import math
 import sys
+from contextlib import ExitStack
 from pathlib import Path
 
 import numpy as np
@@ -86,14 +86,6 @@ def run_case(seed: int, variant: str) -> dict:
     shift = pose.normal(0, 3 * radius, 3)
     scan = Scan.from_points(points @ rotation.T + shift)
     row = {"seed": seed, "variant": variant}
-    patches = []
-    if variant != "shipped":    # the score before: the scan's side alone, for every model
-        patches.append(mock.patch.object(search, "PARTIAL_FACING_SHARE", math.inf))
-    if variant == "front":      # the scan in the search's unit frame, as estimate_pose makes it
-        centred = scan.points - scan.points.mean(axis=0)
-        units = 10.0 ** np.round(np.log10(np.sqrt((centred ** 2).sum(1).mean()) / mask.frame.scale))
-        starts = _front_starts(search, centred / (units * mask.frame.scale), FRONT_SHARE)
-        patches.append(mock.patch.object(search, "hypothesis_starts", starts))
     plausible = search.check_plausible
 
     def refusal_kept(*args, **kwargs):     # the pose is searched to its end; a refusal is recorded
@@ -102,19 +94,22 @@ def run_case(seed: int, variant: str) -> dict:
         except StatfitError as refusal:
             row["refused"] = str(refusal)[:160]
 
-    patches.append(mock.patch.object(search, "check_plausible", refusal_kept))
-    try:
-        for patch in patches:
-            patch.start()
-        found = search.estimate_pose(mask, scan)
-        offset = found.transform.apply(mask.template) - (mask.template @ rotation.T + shift)
-        row.update(degrees=angle_between(found.transform.rotation, rotation), score=found.score,
-                   offset=float(np.sqrt((offset ** 2).sum(1).mean())) / radius)
-    except Exception as error:  # noqa: BLE001 - a refusal is this case's result
-        row["error"] = f"{type(error).__name__}: {error}"[:160]
-    finally:
-        for patch in patches:
-            patch.stop()
+    with ExitStack() as patches:
+        patches.enter_context(mock.patch.object(search, "check_plausible", refusal_kept))
+        if variant != "shipped":    # the score before: the scan's side alone, for every model
+            patches.enter_context(mock.patch.object(search, "of_part_of_a_subject", lambda *_: False))
+        if variant == "front":      # the scan in the search's unit frame, as estimate_pose makes it
+            centred = scan.points - scan.points.mean(axis=0)
+            units = 10.0 ** np.round(np.log10(np.sqrt((centred ** 2).sum(1).mean()) / mask.frame.scale))
+            starts = _front_starts(search, centred / (units * mask.frame.scale), FRONT_SHARE)
+            patches.enter_context(mock.patch.object(search, "hypothesis_starts", starts))
+        try:
+            found = search.estimate_pose(mask, scan)
+            offset = found.transform.apply(mask.template) - (mask.template @ rotation.T + shift)
+            row.update(degrees=angle_between(found.transform.rotation, rotation), score=found.score,
+                       offset=float(np.sqrt((offset ** 2).sum(1).mean())) / radius)
+        except Exception as error:  # noqa: BLE001 - a refusal is this case's result
+            row["error"] = f"{type(error).__name__}: {error}"[:160]
     return row
 
 

@@ -57,6 +57,12 @@ def facing_share(vertices: np.ndarray, faces: np.ndarray) -> float:
     return float(np.linalg.norm(doubled.sum(axis=0)) / total) if total > 0 else 0.0
 
 
+def of_part_of_a_subject(vertices: np.ndarray, faces: np.ndarray) -> bool:
+    """Whether the mesh (vertices (N, 3), faces (F, 3)) is of part of a subject, as a face mask is: its
+    surface faces one way by more than :data:`PARTIAL_FACING_SHARE` of its area (:func:`facing_share`)."""
+    return facing_share(vertices, faces) > PARTIAL_FACING_SHARE
+
+
 def _exact_closest(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray):
     """The query (12 candidate vertices a point, float64) and its closest surface points."""
     query = ClosestPointQuery(faces, len(vertices), k=12)

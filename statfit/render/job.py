@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from statfit.geometry.align import Similarity, compose
-from statfit.geometry.metrics import PARTIAL_FACING_SHARE, facing_share
+from statfit.geometry.metrics import of_part_of_a_subject
 from statfit.errors import StatfitError
 from statfit.core.fit import StageTimer
 from statfit.structures.frame import Frame
@@ -272,9 +272,9 @@ def silhouette_sides(silhouette: str, model: StatModel) -> str:
 
 
 def one_sided_silhouette(model: StatModel) -> bool:
-    """Whether ``auto`` gives ``model`` the one-sided silhouette: its mean shape faces one way by more
-    than :data:`PARTIAL_FACING_SHARE` of its area (:func:`statfit.geometry.metrics.facing_share`)."""
-    return facing_share(model.template, model.faces) > PARTIAL_FACING_SHARE
+    """Whether ``auto`` gives ``model`` the one-sided silhouette: its mean shape is of part of a subject
+    (:func:`statfit.geometry.metrics.of_part_of_a_subject`)."""
+    return of_part_of_a_subject(model.template, model.faces)
 
 
 def downsampled(normals: torch.Tensor, mask: torch.Tensor, camera: Camera, size: int

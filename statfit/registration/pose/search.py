@@ -34,7 +34,7 @@ back to front, turned by 90°). So:
    point's squared distance capped at TOLERANCE², a point whose normal disagrees counting as the
    cap — over the cap: 0 is a perfect fit, 1 nothing
    matched. A model of part of a subject (a face mask: its surface faces one way,
-   :data:`statfit.geometry.metrics.PARTIAL_FACING_SHARE`) is screened and its candidates for step 4
+   :func:`statfit.geometry.metrics.of_part_of_a_subject`) is screened and its candidates for step 4
    chosen by a score from both sides: the scan's points on the model and the model's vertices
    facing the scanner on the scan, since a mask explains about half of a head's scan wherever it
    lies (docs/studies.md §37). The runner-up (another pose ≥ DISTINCT_DEGREES away) within
@@ -58,7 +58,7 @@ from scipy.spatial.transform import Rotation
 from statfit.core.threads import map_in_threads, task_threads
 from statfit.errors import StatfitError, StatfitWarning
 from statfit.geometry.align import Similarity
-from statfit.geometry.metrics import PARTIAL_FACING_SHARE, facing_share
+from statfit.geometry.metrics import of_part_of_a_subject
 from statfit.model.statmodel import StatModel, face_triangles, scalp_triangles
 from statfit.registration.hair import hair_suspects
 from statfit.registration.pose.hypotheses import DISTINCT_DEGREES, angle_between, distinct_poses, hypothesis_starts
@@ -152,7 +152,7 @@ def estimate_pose(model: StatModel, scan: Scan, seed: int = 0, threads: int | No
     facing = facing / max(np.linalg.norm(facing), 1e-12)
     bounds = (1 / SCALE_RANGE, SCALE_RANGE)
     # a model of part of a subject (a face mask) is scored from both sides: the scan's and its own
-    cover = ScanCover(kd_tree(points), facing) if facing_share(mean, model.faces) > PARTIAL_FACING_SHARE else None
+    cover = ScanCover(kd_tree(points), facing) if of_part_of_a_subject(mean, model.faces) else None
     starts = hypothesis_starts(mean, matcher.normals, facing)
     poses = trimmed_icp(matcher, points[few], scan.normals[few], starts, SCREEN_ROUNDS, bounds)
     screened = np.argsort(score_poses(matcher, points[few], scan.normals[few], poses, cover=cover)[0])[:SCREENED]
