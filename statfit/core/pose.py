@@ -54,11 +54,11 @@ def rotation_of(omega: torch.Tensor) -> torch.Tensor:
 def fit_pose(vertices: torch.Tensor, loss: Loss, *, with_scale: bool = False, iterations: int = 200,
              lr: float = 0.01, start: Similarity | None = None, fixed_axis: torch.Tensor | None = None,
              shape_basis: torch.Tensor | None = None, shape_prior: float = SHAPE_PRIOR, shape_lr: float | None = None,
-             move: bool = True, settle: float | None = None) -> PoseFit:
+             move: bool = True, settle: float | None = None, centre: torch.Tensor | None = None) -> PoseFit:
     """The pose y = s·R·x + t of ``vertices`` (N, 3) that minimises ``sum(loss(y).values())``.
 
     Adam on a rotation vector (exponential map), a translation and, ``with_scale``, log s; the
-    rotation and scale act about the vertices' centroid. ``lr`` is in the vertices' units (and
+    rotation and scale act about ``centre`` (3,) (default: the vertices' centroid). ``lr`` is in the vertices' units (and
     radians). ``fixed_axis`` (3,) unit: the translation keeps its component along it (e.g. a
     camera's viewing axis, along which one view barely constrains it). Starts from ``start``
     (default: the identity). ``shape_basis`` (K, N, 3): the shape varies jointly as
@@ -70,7 +70,7 @@ def fit_pose(vertices: torch.Tensor, loss: Loss, *, with_scale: bool = False, it
     objective value.
     """
     dtype, device = vertices.dtype, vertices.device
-    centre = vertices.detach().mean(dim=0)
+    centre = vertices.detach().mean(dim=0) if centre is None else centre
     start = start or Similarity()
     base = torch.as_tensor(start.rotation, dtype=dtype, device=device)
     identity = torch.eye(3, dtype=dtype, device=device)

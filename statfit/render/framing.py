@@ -14,8 +14,10 @@ MIN_FOREGROUND = 16        # a map's foreground pixels, at least
 
 
 def check_framing(template: np.ndarray, camera: Camera, mask: np.ndarray, align: str) -> None:
-    """Refuse a mask with too few foreground pixels, a model behind the camera, or one whose image is far
-    larger or smaller than the target's silhouette (units?) unless the alignment estimates a scale."""
+    """Refuse a mask with too few foreground pixels, a model behind the camera, or one whose image is
+    far larger or smaller than the target's silhouette (units?) unless the alignment estimates a
+    scale. ``template``: (M, 3) the start's vertices that triangles use (a vertex no face uses is
+    never drawn, wherever it lies)."""
     if not mask.any():
         raise StatfitError("the normal map's mask has no foreground pixel")
     if (count := int(mask.sum())) < MIN_FOREGROUND:     # no surface, nor its size against the model's (units)

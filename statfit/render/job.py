@@ -114,7 +114,8 @@ def _centring_guess(template: torch.Tensor, faces: torch.Tensor, camera: Camera,
         low, high = pixels.min(dim=0).values.cpu().numpy(), pixels.max(dim=0).values.cpu().numpy()
         model_centre = (low + high) / 2
         area_ratio = (np.ptp(cols) + 1) * (np.ptp(rows) + 1) / max(float(np.prod(high - low)), 1e-300)
-        rough = _similarity_move(template, camera, model_centre, target_centre, area_ratio, float(depths.mean()))
+        rough = _similarity_move(_drawn(template, faces), camera, model_centre, target_centre, area_ratio,
+                                 float(depths.mean()))
         moved = torch.as_tensor(rough.apply(template.detach().double().cpu().numpy()), dtype=template.dtype,
                                 device=template.device)
         refined = _centring_guess(moved, faces, camera, mask, with_scale)  # now measured on its silhouette
@@ -122,19 +123,25 @@ def _centring_guess(template: torch.Tensor, faces: torch.Tensor, camera: Camera,
     else:
         raise StatfitError("the model is not in the camera's view: are the model and the camera in the same frame "
                            "and units? (--align similarity estimates a scale)")
-    return _similarity_move(template, camera, model_centre, target_centre, area_ratio if with_scale else 1.0,
-                            float(depths.mean()))
+    return _similarity_move(_drawn(template, faces), camera, model_centre, target_centre,
+                            area_ratio if with_scale else 1.0, float(depths.mean()))
 
 
-def _similarity_move(template: torch.Tensor, camera: Camera, model_centre: np.ndarray, target_centre: np.ndarray,
+def _drawn(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """The vertices (M, 3) of ``vertices`` (N, 3) that triangles use, detached: the pose turns and
+    scales about their centroid, wherever a vertex no face uses lies."""
+    return vertices.detach()[faces.unique()]
+
+
+def _similarity_move(drawn: torch.Tensor, camera: Camera, model_centre: np.ndarray, target_centre: np.ndarray,
                      area_ratio: float, depth: float) -> Similarity:
-    """Scale about the centroid by sqrt(area_ratio), then move parallel to the image plane at
+    """Scale about the centroid of ``drawn`` (M, 3) by sqrt(area_ratio), then move parallel to the image plane at
     ``depth`` so that the pixel ``model_centre`` lands on ``target_centre``."""
     scale = float(np.sqrt(area_ratio))
     K_inv = np.linalg.inv(camera.K.numpy())
     shift = (K_inv @ [*target_centre, 1.0] - K_inv @ [*model_centre, 1.0]) * depth
     shift[2] = 0.0
-    centre = template.detach().double().mean(dim=0).cpu().numpy()
+    centre = drawn.double().mean(dim=0).cpu().numpy()
     return Similarity(scale, np.eye(3), (1 - scale) * centre + camera.rotation.numpy().T @ shift)
 
 
@@ -221,7 +228,7 @@ class PosedView:
         one_sided, covering = sides == "one-sided", sides == "covering"
         timer = timer or StageTimer.for_device(device)
         start_shape = model.template if init is None else checked_init(init, model)
-        check_framing(start_shape, camera, normal_map.mask, align)
+        check_framing(start_shape[np.unique(model.faces)], camera, normal_map.mask, align)   # the drawn vertices
         frame = model.frame
         space = FitSpace.of(model, frame, device, dtype)
         target = torch.as_tensor(camera_space_normals(normal_map, camera, normal_space, normal_convention),
@@ -239,7 +246,8 @@ class PosedView:
                 coarse = NormalMapObjective(*downsampled(target, mask, unit_camera, ALIGN_SIZE), faces,
                                             silhouette_weight, adjacency, one_sided=one_sided, covering=covering,
                                             **alignment_visibility(visibility_every, visibility_moved))
-                pose, x0 = _align(x0, coarse, space, guess, align == "similarity", unit_camera.rotation[2].to(dtype))
+                pose, x0 = _align(x0, coarse, space, guess, align == "similarity", unit_camera.rotation[2].to(dtype),
+                                  _drawn(x0, faces).mean(dim=0))
         posed_camera = camera_in_frame(camera, frame, pose)
         options = dict(faces=faces, silhouette_weight=silhouette_weight if region is None else 0.0,
                        adjacency=adjacency, region_faces=region_faces, one_sided=one_sided, covering=covering,
@@ -299,8 +307,9 @@ def downsampled(normals: torch.Tensor, mask: torch.Tensor, camera: Camera, size:
 
 
 def _align(start: torch.Tensor, objective: NormalMapObjective, space: FitSpace, guess: Similarity | None,
-           with_scale: bool, view_axis: torch.Tensor) -> tuple[Similarity, torch.Tensor]:
-    """The model → unit-frame pose and the start shape for the fit.
+           with_scale: bool, view_axis: torch.Tensor, centre: torch.Tensor) -> tuple[Similarity, torch.Tensor]:
+    """The model → unit-frame pose, turning and scaling about ``centre`` (3,), and the start shape for
+    the fit.
 
     The model's coefficients are fitted jointly with the pose (so that the pose does not absorb
     differences of shape; under a rigid pose at the step SHAPE_LR), and, as a reference, alone
@@ -311,7 +320,7 @@ def _align(start: torch.Tensor, objective: NormalMapObjective, space: FitSpace, 
     basis = (space.basis_t * space.std[:, None]).view(len(space.std), -1, 3)
     # with a scale, the size mode trades against it: the coefficients keep the pose's step
     common = dict(iterations=POSE_ITERATIONS, lr=POSE_LR, settle=POSE_SETTLE, start=guess, fixed_axis=view_axis,
-                  shape_basis=basis, shape_lr=POSE_LR if with_scale else SHAPE_LR)
+                  shape_basis=basis, shape_lr=POSE_LR if with_scale else SHAPE_LR, centre=centre)
     moved = fit_pose(start, objective, with_scale=with_scale, **common)
     if guess is not None:
         return moved.pose, moved.shape  # the silhouettes disagreed: the rough guess needs refining
