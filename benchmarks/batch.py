@@ -79,7 +79,8 @@ def _in_one_process(scans: list[Path], out: Path, model: str | None, method: lis
     if "--iterations" in options:
         kwargs["iterations"] = int(options["--iterations"])
     code = ("from pathlib import Path; from statfit.model.importers.cache import open_model; "
-            "from statfit.io.mesh import read_points, mesh_bytes, write_atomic; from statfit import register; "
+            "from statfit.io.mesh import read_points, mesh_bytes; from statfit.io.files import write_atomic; "
+            "from statfit import register; "
             "from statfit.core.threads import flush_denormals_everywhere; flush_denormals_everywhere(); "
             f"model = open_model({model!r} and Path({model!r})); "
             f"[write_atomic(Path({str(out)!r}) / (Path(s).stem + '.ply'), mesh_bytes(register(model, read_points(s), "

@@ -43,7 +43,8 @@ def _measure(argv: list[str]) -> tuple[float, float]:
 
 def measure(quick: bool, device: str = "cpu") -> dict:
     """Run every method of both jobs; returns rows of {job, method, iterations, seconds, peak_rss_mb, errors}."""
-    from statfit.io.mesh import points_bytes, read_mesh, write_atomic
+    from statfit.io.mesh import points_bytes, read_mesh
+    from statfit.io.files import write_atomic
     from statfit.io.normalmap import write_normal_map
 
     config = QUICK if quick else FULL

@@ -6,6 +6,7 @@ import sys
 import time
 import warnings
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Callable, Iterator
 
 import typer
@@ -14,6 +15,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, Ti
 
 from statfit.errors import StatfitError
 from statfit.core.method_help import LANDMARK_WEIGHT, PCA_LANDMARK_WEIGHT, SUMMARIES
+from statfit.io.files import existing_file, existing_folder
 
 stderr = Console(stderr=True)
 
@@ -219,3 +221,18 @@ def clutter_choice(value: str) -> bool | None:
     if value not in CLUTTER_CHOICES:
         raise StatfitError(f"unknown --clutter {value!r}; choose auto, on or off")
     return CLUTTER_CHOICES[value]
+
+
+def refuse_missing(files: dict[str, str | Path | None], model: Path | None = None,
+                   folders: dict[str, str | Path] | None = None) -> None:
+    """The readers' one line for a mistyped input name, said before a command loads the library
+    (~2 s of imports): each of ``files`` (what it is → path; None and '-' skipped) must be a file,
+    each of ``folders`` a folder; ``model``, when given, a file or a folder (ICT-FaceKit's)."""
+    for what, path in files.items():
+        if path is not None and str(path) != "-":
+            existing_file(path, what)
+    for what, path in (folders or {}).items():
+        existing_folder(path, what)
+    if model is not None and not Path(model).is_dir():
+        existing_file(model, "model file")
+

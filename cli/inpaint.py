@@ -5,7 +5,8 @@ from pathlib import Path
 
 import typer
 
-from statfit_cli.common import DeviceOption, JsonOption, LogOption, QuietOption
+from statfit.io.files import check_writable
+from statfit_cli.common import DeviceOption, JsonOption, LogOption, QuietOption, refuse_missing
 
 
 def inpaint(
@@ -52,21 +53,25 @@ def inpaint(
 
         statfit inpaint face.png --mask holes.png --method laplacian --lam 99 --out blurry.png
     """
-    from statfit.core.device import resolve_device
-    from statfit.io.image import encoded_image, image_suffix, read_charts, read_image, read_mask
-    from statfit.io.mesh import check_writable
-    from statfit.texture.inpaint import inpaint as fill, inpaint_settings
-    from statfit.texture.model import load_texture_model
-    from statfit_cli.runner import finish, fit_run
+    from statfit.io.image import image_suffix
 
     method = method or ("hybrid" if model_path is not None else "laplacian")
-    settings = inpaint_settings(method, iterations, lr, beta, lam)
-    torch_device = resolve_device(device)
     out = out or Path(f"{image_path.stem}_filled.png")
     image_suffix(out)
     for target in (out, log, preview):
         if target is not None:
             check_writable(target)
+    refuse_missing({"image": image_path, "mask": mask, "chart image": charts, "texture model file": model_path})
+
+    # The library loads once the paths are known good: a mistyped name is refused at once.
+    from statfit.core.device import resolve_device
+    from statfit.io.image import encoded_image, read_charts, read_image, read_mask
+    from statfit.texture.inpaint import inpaint as fill, inpaint_settings
+    from statfit.texture.model import load_texture_model
+    from statfit_cli.runner import finish, fit_run
+
+    settings = inpaint_settings(method, iterations, lr, beta, lam)
+    torch_device = resolve_device(device)
     image = read_image(image_path)
     visible = read_mask(mask) != mask_invert
     labels = read_charts(charts) if charts is not None else None

@@ -1,6 +1,8 @@
 """The ``statfit`` command: sub-commands and the one place where errors become exit code 2."""
 from __future__ import annotations
 
+import importlib.abc
+import importlib.util
 import os
 import sys
 import warnings
@@ -45,8 +47,8 @@ app.add_typer(model.app, name="model")
 def _set_up_before_each_command(command) -> None:
     """Make every command of the click tree ``command`` set up the process for fitting once its options
     are parsed and before its work: subnormals flushed to zero before any parallel kernel, so every
-    worker thread inherits it. ``--help`` and a refused option never get there, so they import no
-    torch (the commands import the library when they run)."""
+    worker thread inherits it. ``--help``, a refused option and a refused path never import torch
+    (the commands import the library once their paths are checked)."""
     for child in getattr(command, "commands", {}).values():
         _set_up_before_each_command(child)
     work = command.callback
@@ -54,12 +56,41 @@ def _set_up_before_each_command(command) -> None:
         return
 
     def set_up_then_work(*args, **kwargs):
-        from statfit.core.threads import flush_denormals_everywhere
-
-        flush_denormals_everywhere()
+        _flush_denormals_once_torch_loads()
         return work(*args, **kwargs)
 
     command.callback = set_up_then_work
+
+
+class _FlushWhenTorchLoads(importlib.abc.MetaPathFinder):
+    """A one-shot import hook: the first ``import torch`` runs torch's own loader, then flushes
+    subnormals on this thread, before anything can run a parallel kernel."""
+
+    def find_spec(self, name, path=None, target=None):
+        if name != "torch":
+            return None
+        sys.meta_path.remove(self)
+        spec = importlib.util.find_spec(name)
+        if spec is not None and spec.loader is not None:
+            load = spec.loader.exec_module
+
+            def load_then_flush(module):
+                load(module)
+                module.set_flush_denormal(True)
+
+            spec.loader.exec_module = load_then_flush
+        return spec
+
+
+def _flush_denormals_once_torch_loads() -> None:
+    """Flush subnormals now if torch is loaded (an earlier command in this process), else right
+    after the command imports it: a command that refuses its input does not pay torch's import."""
+    if "torch" in sys.modules:
+        from statfit.core.threads import flush_denormals_everywhere
+
+        flush_denormals_everywhere()
+    elif not any(isinstance(finder, _FlushWhenTorchLoads) for finder in sys.meta_path):
+        sys.meta_path.insert(0, _FlushWhenTorchLoads())
 
 
 def _fail(message: str) -> None:

@@ -30,7 +30,7 @@ def _explained(cumulative: np.ndarray, with_last: bool) -> dict[str, float]:
 
 
 def _check_output(out: Path, *inputs: Path) -> None:
-    from statfit.io.mesh import check_writable
+    from statfit.io.files import check_writable
 
     check_writable(out)
     if any(out.resolve() == p.resolve() for p in inputs):
@@ -215,7 +215,8 @@ def sample(
         statfit model sample flame.npz --sigma 2 --seed 1 -o sample.ply
         statfit model sample flame.npz --params fit.params.json -o projection.ply
     """
-    from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, write_atomic
+    from statfit.io.mesh import mesh_bytes
+    from statfit.io.files import check_writable, mesh_format, write_atomic
     from statfit.model.importers.cache import open_model
     from statfit.model.params import posed_shape
     from statfit.model.params_file import read_params

@@ -6,11 +6,12 @@ from pathlib import Path
 import typer
 
 from statfit.errors import StatfitError
-from statfit.io.files import existing_file
+from statfit.io.files import check_writable, mesh_format, params_suffix
 from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, FallbackOption, IterationsOption, JsonOption,
                                 KOption, LamOption, LandmarkWeightOption, LaplacianOption, LogOption, LrOption,
                                 MethodOption, ModeGainOption, ModelOption, ParamsOption, PowerOption, PresetOption,
-                                QuietOption, SeedOption, ThreadsOption, clutter_choice, setting_overrides, within)
+                                QuietOption, SeedOption, ThreadsOption, clutter_choice, refuse_missing,
+                                setting_overrides, within)
 
 
 def register(
@@ -71,23 +72,6 @@ def register(
     The PLY's vertices carry data_distance (to the nearest scan point), observed (0/1) and
     off_span (distance from the model's span), in the scan's units (docs/formats.md).
     """
-    from statfit.core.device import resolve_device
-    from statfit.core.methods import fallback as method_fallback, landmark_weight as method_landmark_weight, resolve
-    from statfit.geometry.support import scan_support
-    from statfit.io.landmarks import read_landmarks
-    from statfit.io.mesh import check_writable, load_scan, mesh_bytes, mesh_format
-    from statfit.model.importers.cache import open_model
-    from statfit.model.params import project, vertex_fields
-    from statfit.model.params_file import params_bytes, params_suffix
-    from statfit.registration.job import register as fit_scan
-    from statfit_cli.runner import finish, fit_run
-
-    overrides = setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain)
-    clutter_rules = clutter_choice(clutter)
-    stages = resolve(method, preset, **overrides)
-    refit = method_fallback(method, preset, **overrides) if fallback else None
-    weight = method_landmark_weight(method) if landmark_weight is None else landmark_weight
-    torch_device = resolve_device(device, "register")
     if len(scans) > 1:
         raise StatfitError(f"{len(scans)} scans given; register fits one — for many, `statfit batch register SCANS "
                            "--out-dir DIR` (parallel, resumable, one failure does not stop the rest)")
@@ -101,8 +85,26 @@ def register(
         if path is not None:
             check_writable(path)
     mesh_format(target)
-    if scan != "-":
-        existing_file(scan, "scan")
+    refuse_missing({"scan": scan, "landmark file": landmarks}, model_path)
+
+    # The library loads once the paths are known good: a mistyped name is refused at once.
+    from statfit.core.device import resolve_device
+    from statfit.core.methods import fallback as method_fallback, landmark_weight as method_landmark_weight, resolve
+    from statfit.geometry.support import scan_support
+    from statfit.io.landmarks import read_landmarks
+    from statfit.io.mesh import load_scan, mesh_bytes
+    from statfit.model.importers.cache import open_model
+    from statfit.model.params import project, vertex_fields
+    from statfit.model.params_file import params_bytes
+    from statfit.registration.job import register as fit_scan
+    from statfit_cli.runner import finish, fit_run
+
+    overrides = setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain)
+    clutter_rules = clutter_choice(clutter)
+    stages = resolve(method, preset, **overrides)
+    refit = method_fallback(method, preset, **overrides) if fallback else None
+    weight = method_landmark_weight(method) if landmark_weight is None else landmark_weight
+    torch_device = resolve_device(device, "register")
     model = open_model(model_path, k)
     scan_landmarks = read_landmarks(landmarks) if landmarks is not None else None
     points = load_scan(scan, seed)

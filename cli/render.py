@@ -6,11 +6,12 @@ from pathlib import Path
 import typer
 
 from statfit.errors import StatfitError
+from statfit.io.files import check_writable, mesh_format, params_suffix
 from statfit.objectives.weights import SILHOUETTE_WEIGHT
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
                                 LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
                                 ParamsOption, PowerOption, PresetOption, QuietOption, SeedOption, SilhouetteOption,
-                                ThreadsOption, setting_overrides, within)
+                                ThreadsOption, refuse_missing, setting_overrides, within)
 
 PREVIEW_COLOURS = ("normals", "data_distance", "off_span", "observed")
 
@@ -76,20 +77,6 @@ def render(
     observed (0/1: seen in a covered pixel) and off_span (distance from the model's span), in the
     camera's world units (docs/formats.md).
     """
-    from statfit.core.device import resolve_device
-    from statfit.geometry.support import view_support
-    from statfit.io.image import read_mask
-    from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_mesh
-    from statfit.io.normalmap import apply_mask, camera_for_map, read_normal_map
-    from statfit.model.importers.cache import open_model
-    from statfit.model.params import project, vertex_fields
-    from statfit.model.params_file import params_bytes, params_suffix
-    from statfit.render.job import camera_space_normals, reconstruct, render_stages, silhouette_sides
-    from statfit_cli.runner import finish, fit_run
-
-    overrides = setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain)
-    stages = render_stages(method, preset, region, **overrides)
-    torch_device = resolve_device(device, "render")
     out = out or Path(f"{normal_map_path.stem}_fit.ply")
     if preview_colour not in PREVIEW_COLOURS:
         raise StatfitError(f"unknown --preview-colour {preview_colour!r}; choose one of {', '.join(PREVIEW_COLOURS)}")
@@ -99,6 +86,24 @@ def render(
         if target is not None:
             check_writable(target)
     mesh_format(out)
+    refuse_missing({"normal map": normal_map_path, "camera file": camera_path, "mask": mask, "file": init},
+                   model_path)
+
+    # The library loads once the paths are known good: a mistyped name is refused at once.
+    from statfit.core.device import resolve_device
+    from statfit.geometry.support import view_support
+    from statfit.io.image import read_mask
+    from statfit.io.mesh import mesh_bytes, read_mesh
+    from statfit.io.normalmap import apply_mask, camera_for_map, read_normal_map
+    from statfit.model.importers.cache import open_model
+    from statfit.model.params import project, vertex_fields
+    from statfit.model.params_file import params_bytes
+    from statfit.render.job import camera_space_normals, reconstruct, render_stages, silhouette_sides
+    from statfit_cli.runner import finish, fit_run
+
+    overrides = setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain)
+    stages = render_stages(method, preset, region, **overrides)
+    torch_device = resolve_device(device, "render")
     normal_map = read_normal_map(normal_map_path)
     if mask is not None:
         normal_map = apply_mask(normal_map, read_mask(mask), str(mask))

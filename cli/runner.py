@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 from statfit.io.jsonlog import JsonLinesLog, versions
-from statfit.io.mesh import write_atomic
+from statfit.io.files import write_atomic
 from statfit_cli.common import printed_warnings, progress_bar
 
 

@@ -11,14 +11,14 @@ import numpy as np
 import typer
 
 from statfit.errors import StatfitError
-from statfit.io.files import existing_file
+from statfit.io.files import check_writable, existing_file, mesh_format, params_suffix
 from statfit.objectives.weights import MASK_WEIGHT
 if TYPE_CHECKING:
     from statfit.structures.camera import Camera
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
                                 LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
                                 ParamsOption, PowerOption, PresetOption, QuietOption, SeedOption, ThreadsOption,
-                                setting_overrides, within)
+                                refuse_missing, setting_overrides, within)
 
 MAX_CAMERA_BYTES = 16 << 20
 
@@ -67,14 +67,23 @@ def splat(
     The PLY's vertices carry data_distance (to the nearest point of the fit seen in a training
     view's foreground), observed (0/1) and off_span (distance from the model's span).
     """
+    if params is not None:
+        params_suffix(params)
+    for target in (out, splats_out, preview, log, params):
+        if target is not None:
+            check_writable(target)
+    mesh_format(out)
+    refuse_missing({}, model_path, folders={"views folder": folder})
+
+    # The library loads once the paths are known good: a mistyped name is refused at once.
     from statfit.core.device import resolve_device
     from statfit.geometry.support import view_support
-    from statfit.io.mesh import check_writable, mesh_bytes, mesh_format
+    from statfit.io.mesh import mesh_bytes
     from statfit.io.splats import splats_bytes
     from statfit.io.views import read_views
     from statfit.model.importers.cache import open_model
     from statfit.model.params import project, vertex_fields
-    from statfit.model.params_file import params_bytes, params_suffix
+    from statfit.model.params_file import params_bytes
     from statfit.renderer.binding import PATTERNS
     from statfit.splat.job import fit_views, splat_records, splat_stages
     from statfit_cli.runner import finish, fit_run
@@ -84,12 +93,6 @@ def splat(
     stages = splat_stages(method, preset, **setting_overrides(iterations, lr, beta, power, lam, laplacian,
                                                               mode_gain))
     torch_device = resolve_device(device, "splat")
-    if params is not None:
-        params_suffix(params)
-    for target in (out, splats_out, preview, log, params):
-        if target is not None:
-            check_writable(target)
-    mesh_format(out)
     views = read_views(folder)
     train = sum(view.split == "train" for view in views)
     if views_per_step > train:
@@ -141,7 +144,8 @@ def splat_render(
         statfit splat-render splats.ply fit.ply --camera views/cameras.json --view 3 --out novel.png
     """
     from statfit.io.image import encoded_image, image_suffix
-    from statfit.io.mesh import check_writable, read_mesh, write_atomic
+    from statfit.io.mesh import read_mesh
+    from statfit.io.files import write_atomic
     from statfit.io.splats import read_splats
     import torch
 

@@ -75,7 +75,8 @@ def scan(
         statfit synth scan --model model.npz --seed 3 --realistic --units mm --out scan.ply --gt gt.ply
     """
     from statfit.io.landmarks import landmarks_text
-    from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, points_bytes, write_atomic
+    from statfit.io.mesh import mesh_bytes, points_bytes
+    from statfit.io.files import check_writable, mesh_format, write_atomic
     from statfit.model.importers.cache import open_model
     from statfit.synth.sample import scan_from_view
     from statfit.synth.scanner import realistic_scan
@@ -146,7 +147,8 @@ def normals(
         statfit synth normals --model model.npz --seed 3 --yaw 20 --out normals.exr --camera-out camera.json --gt gt.ply
         statfit synth normals --model body.npz --shape person.ply --yaw 30 --size 768 --out body.exr --camera-out cam.json
     """
-    from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, read_mesh, write_atomic
+    from statfit.io.mesh import mesh_bytes, read_mesh
+    from statfit.io.files import check_writable, mesh_format, write_atomic
     from statfit.io.normalmap import write_camera, write_normal_map
     from statfit.model.importers.cache import open_model
     from statfit.renderer.images import render_target
@@ -196,7 +198,8 @@ def body(
         statfit synth body ../shared/data/makehuman --seed 4 -o person.ply
         statfit synth normals --model body.npz --shape person.ply --yaw 30 --size 768 --out body.exr --camera-out cam.json
     """
-    from statfit.io.mesh import check_writable, mesh_bytes, mesh_format, write_atomic
+    from statfit.io.mesh import mesh_bytes
+    from statfit.io.files import check_writable, mesh_format, write_atomic
     from statfit.model.importers.makehuman import read_makehuman
     from statfit.model.importers.makehuman_shapes import BodySpace
 
@@ -233,7 +236,8 @@ def views(
         statfit synth views --model ict.npz --delta expressions.npz --delta-name jawOpen --out views/
     """
     from statfit.io.image import write_image
-    from statfit.io.mesh import mesh_bytes, write_atomic
+    from statfit.io.mesh import mesh_bytes
+    from statfit.io.files import write_atomic
     from statfit.io.views import CAMERAS_FILE, views_json
     from statfit.model.importers.cache import open_model
     from statfit.renderer.images import photograph

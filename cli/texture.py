@@ -77,7 +77,7 @@ def build_texture(
         statfit model build-texture textures/*.png -o tex.npz --k 200 --size 256 --jitter 9
     """
     from statfit.io.image import read_image
-    from statfit.io.mesh import check_writable
+    from statfit.io.files import check_writable
     from statfit.texture.model import build_texture_model
 
     if pca not in PCA_KINDS:

@@ -38,7 +38,7 @@ for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import numpy as np  # noqa: E402  (after the thread settings, which numpy reads on import)
 
-from statfit.io.mesh import write_atomic  # noqa: E402
+from statfit.io.files import write_atomic  # noqa: E402
 from statfit.io.npz import npz_bytes  # noqa: E402
 from statfit.model.pca import principal_components  # noqa: E402
 

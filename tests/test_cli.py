@@ -271,6 +271,33 @@ def test_help_and_refused_options_import_no_fitting_code():
     assert done.stderr.count(" 0\n") == 6 and "--trim" in done.stderr and done.stderr.endswith("register 2\n"), done.stderr
 
 
+def test_a_mistyped_path_is_refused_before_the_library_loads(tmp_path):
+    """A missing input or an output folder that does not exist is the reader's own line, said before
+    a command imports torch, trimesh or SciPy (~2 s): the paths are checked first."""
+    import subprocess
+    import sys
+
+    (tmp_path / "scan.ply").write_text("ply")
+    cases = {"scan not found: nosuch.ply": ["register", "nosuch.ply"],
+             "model file not found: nosuch.npz": ["register", "scan.ply", "--model", "nosuch.npz"],
+             "landmark file not found: l.txt": ["register", "scan.ply", "--landmarks", "l.txt"],
+             "output folder does not exist: nodir": ["register", "scan.ply", "--out", "nodir/fit.ply"],
+             "normal map not found: n.exr": ["render", "n.exr"],
+             "camera file not found: c.json": ["render", "scan.ply", "--camera", "c.json"],
+             "views folder not found: views": ["splat", "views"],
+             "mask not found: m.png": ["inpaint", "scan.ply", "--mask", "m.png"]}
+    code = ("import sys\nfrom statfit_cli.main import main\n"
+            f"for argv in {list(cases.values())!r}:\n"
+            "    try:\n        main(argv)\n    except SystemExit as done:\n"
+            "        print(done.code, file=sys.stderr)\n"
+            "print(sorted(m for m in ('torch', 'trimesh', 'scipy') if m in sys.modules))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert done.returncode == 0 and done.stdout.strip() == "[]", (done.stdout[-500:], done.stderr[-2000:])
+    lines = done.stderr.strip().splitlines()
+    assert lines[1::2] == ["2"] * len(cases), done.stderr
+    assert [line.removeprefix("statfit: error: ") for line in lines[::2]] == list(cases), done.stderr
+
+
 def test_the_cli_starts_without_importing_matplotlib():
     """matplotlib (0.4 s of every process's start) is imported when a preview is drawn, not by the
     CLI's modules nor by `batch report`'s, which use the preview's pixel functions only."""

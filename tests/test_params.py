@@ -13,7 +13,8 @@ from statfit.errors import StatfitError
 from statfit.geometry.align import Similarity
 from statfit.geometry.metrics import off_span_quartiles
 from statfit.geometry.support import scan_support, view_support
-from statfit.io.mesh import mesh_bytes, read_mesh, read_points, read_vertex_fields, write_atomic
+from statfit.io.mesh import mesh_bytes, read_mesh, read_points, read_vertex_fields
+from statfit.io.files import write_atomic
 from statfit.model.params import canonical_signs, posed_shape, project, vertex_fields
 from statfit.model.params_file import params_bytes, read_params
 from statfit.model.statmodel import default_model_path, load_model, model_from_arrays

@@ -31,7 +31,7 @@ def report(
     """
     from statfit.batch.report import csv_text, read_batch, report_rows
     from statfit.batch.report_page import report_html
-    from statfit.io.mesh import check_writable, write_atomic
+    from statfit.io.files import check_writable, write_atomic
 
     batch = read_batch(out_dir)
     page, table = out or out_dir / "report.html", csv_path or out_dir / "report.csv"

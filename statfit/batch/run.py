@@ -23,7 +23,7 @@ from statfit.batch.fits import FitJob, Outcome, run_group, run_job
 from statfit.batch.manifest import MANIFEST_NAME, Manifest, is_current, latest_fits, read_rows, settings_key
 from statfit.batch.plan import Item, companion_file, file_digest
 from statfit.errors import StatfitError
-from statfit.io.mesh import write_atomic
+from statfit.io.files import write_atomic
 
 POLL_SECONDS = 0.5
 WORKER_DIED = "the worker died while fitting this input (a crash, or out of memory)"

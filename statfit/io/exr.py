@@ -12,8 +12,7 @@ import numpy as np
 import OpenEXR
 
 from statfit.errors import StatfitError
-from statfit.io.files import existing_file
-from statfit.io.mesh import write_atomic
+from statfit.io.files import existing_file, write_atomic
 
 EXR_MAGIC = b"\x76\x2f\x31\x01"
 

@@ -15,8 +15,7 @@ from PIL import Image, UnidentifiedImageError
 
 from statfit.errors import StatfitError
 from statfit.io.exr import exr_bytes, is_exr, read_exr
-from statfit.io.files import existing_file
-from statfit.io.mesh import write_atomic
+from statfit.io.files import existing_file, write_atomic
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")
 EXR_CHANNELS = {1: "Y", 3: "RGB", 4: "RGBA"}

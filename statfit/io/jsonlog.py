@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from statfit.io.mesh import write_atomic
+from statfit.io.files import write_atomic
 
 
 def versions() -> dict[str, str]:

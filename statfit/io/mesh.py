@@ -1,10 +1,9 @@
-"""Meshes and point clouds in and out (trimesh), with atomic writes and stdin/stdout as ``-``."""
+"""Meshes and point clouds in and out (trimesh), stdin as ``-`` (atomic writes and output checks:
+:mod:`statfit.io.files`)."""
 from __future__ import annotations
 
 import io
-import os
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -153,69 +152,3 @@ def read_vertex_fields(source: str | Path) -> dict[str, np.ndarray]:
 def points_bytes(points: np.ndarray) -> bytes:
     """A point cloud encoded as binary PLY."""
     return trimesh.PointCloud(points).export(file_type="ply")
-
-
-def _umask() -> int:
-    """The process's umask (read by setting it and putting it back)."""
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
-def write_atomic(target: str | Path, data: bytes) -> None:
-    """Write ``data`` to ``target`` via a temporary file in the same folder and a rename, so a
-    reader never sees a half-written file; ``-`` writes to stdout."""
-    if str(target) == "-":
-        sys.stdout.buffer.write(data)
-        sys.stdout.buffer.flush()
-        return
-    path = Path(target)
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.is_dir():
-        raise StatfitError(f"output folder does not exist: {folder}")
-    try:
-        fd, tmp = tempfile.mkstemp(dir=folder, prefix=".statfit-", suffix=".tmp")  # short: any legal name fits
-    except OSError as exc:
-        raise StatfitError(f"cannot write to {folder}: {exc.strerror}") from None
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; a plain write would honour the umask
-        os.replace(tmp, path)
-    except OSError as exc:
-        Path(tmp).unlink(missing_ok=True)
-        raise StatfitError(f"cannot write {path}: {exc.strerror}") from None
-
-
-def mesh_format(target: str | Path) -> str:
-    """``obj`` for a .obj path, else ``ply`` (a .ply path, one without a suffix, stdout); a path with
-    another suffix is refused (PLY bytes in a file named .stl open nowhere)."""
-    suffix = "" if str(target) == "-" else Path(str(target)).suffix.lower()
-    if suffix not in ("", ".ply", ".obj"):
-        raise StatfitError(f"{target}: meshes are written as .ply or .obj, not {suffix}")
-    return "obj" if suffix == ".obj" else "ply"
-
-
-def check_writable(target: str | Path) -> None:
-    """Fail early, before any work, if ``target`` cannot be written: its folder is missing or not
-    writable, it is a folder, or its name is too long — tried by creating (and removing) a file
-    beside it, which also catches folders that refuse new files (/proc, a read-only mount)."""
-    if str(target) == "-":
-        return
-    path = Path(target)
-    folder = path.parent if str(path.parent) else Path(".")
-    try:
-        if not folder.is_dir():
-            raise StatfitError(f"output folder does not exist: {folder}")
-        if path.is_dir():
-            raise StatfitError(f"output path is a folder: {target}")
-        name_limit = os.pathconf(folder, "PC_NAME_MAX")
-        if len(os.fsencode(path.name)) > name_limit:
-            raise StatfitError(f"output name is longer than the {name_limit} bytes this file system allows: "
-                               f"{path.name[:40]}…")
-        with tempfile.NamedTemporaryFile(dir=folder, prefix=".statfit-", suffix=".tmp"):
-            pass
-    except StatfitError:
-        raise
-    except OSError as exc:
-        raise StatfitError(f"cannot write {str(path)[:200]}: {exc.strerror}") from None

@@ -13,8 +13,7 @@ import numpy as np
 
 from statfit.errors import StatfitError
 from statfit.io.exr import read_exr, write_exr
-from statfit.io.files import existing_file
-from statfit.io.mesh import write_atomic
+from statfit.io.files import existing_file, write_atomic
 from statfit.structures.camera import Camera
 from statfit.structures.normal_map import NormalMap
 

@@ -16,7 +16,7 @@ MAX_BYTES = 4 << 30
 
 def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
     """A compressed npz archive of ``arrays``, byte-identical for identical arrays; write it with
-    ``statfit.io.mesh.write_atomic``."""
+    ``statfit.io.files.write_atomic``."""
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_DEFLATED) as archive:
         for name, array in arrays.items():

@@ -24,7 +24,7 @@ import numpy as np
 
 from statfit.structures.camera import Camera
 from statfit.errors import StatfitError
-from statfit.io.files import existing_file
+from statfit.io.files import existing_file, existing_folder
 from statfit.io.image import read_image, read_mask
 from statfit.structures.views import SPLITS, View
 
@@ -39,9 +39,7 @@ def read_views(folder: str | Path) -> list[View]:
     """The views of a multi-view folder, in the order of its ``cameras.json``; every problem is
     one :class:`StatfitError` line naming the file or view. The whole file is checked before any
     image is read."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise StatfitError(f"views folder {'is not a folder' if folder.exists() else 'not found'}: {folder}")
+    folder = existing_folder(folder, "views folder")
     source = folder / CAMERAS_FILE
     entries = _entries(_json(source), source)
     described = [_described(entry, index, source) for index, entry in enumerate(entries)]

@@ -12,26 +12,17 @@ from scipy.spatial.transform import Rotation
 
 from statfit.errors import StatfitError
 from statfit.geometry.align import Similarity
-from statfit.io.files import existing_file
+from statfit.io.files import existing_file, params_suffix
 from statfit.io.npz import npz_bytes, read_npz
 from statfit.model.params import (Projection, canonical_signs, check_fingerprint, model_fingerprint,
                                   off_span_summary)
 from statfit.model.statmodel import StatModel
 
 FORMAT, VERSION = "statfit-params", 1
-SUFFIXES = (".json", ".npz")
 MAX_BYTES = 64 << 20
 ROTATION_TOLERANCE = 1e-6
 # Coefficients (standard deviations) beyond this are no person's: a damaged or foreign file.
 IMPLAUSIBLE_COEFFICIENT = 1e3
-
-
-def params_suffix(path: str | Path) -> str:
-    """``.json`` or ``.npz``; anything else refused before any work."""
-    suffix = Path(str(path)).suffix.lower()
-    if suffix not in SUFFIXES:
-        raise StatfitError(f"--params {path}: the file must end in .json or .npz")
-    return suffix
 
 
 def params_record(model: StatModel, projection: Projection) -> dict:

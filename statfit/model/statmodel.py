@@ -18,7 +18,7 @@ import numpy as np
 
 from statfit.errors import StatfitError
 from statfit.structures.frame import Frame, surface_vertices
-from statfit.io.mesh import write_atomic
+from statfit.io.files import write_atomic
 from statfit.io.npz import npz_bytes, read_npz
 from statfit.structures.kdtree import kd_tree
 

@@ -15,7 +15,7 @@ from typing import Iterable
 import numpy as np
 
 from statfit.errors import StatfitError
-from statfit.io.mesh import write_atomic
+from statfit.io.files import write_atomic
 from statfit.io.npz import npz_bytes, read_npz
 from statfit.model.statmodel import _float_array
 from statfit.model.pca import principal_components, with_fixed_signs
