@@ -135,12 +135,16 @@ BAD_OPTIONS = [["--beta", "-1"], ["--beta", "-0.5"], ["--lr", "-1"], ["--lr", "n
 @pytest.mark.parametrize("option", BAD_OPTIONS, ids=" ".join)
 def test_every_command_refuses_bad_settings_the_same_way(command, option, tmp_path, capsys):
     """One line naming the setting, exit 2, nothing written, before any input is read (the inputs
-    here do not even exist)."""
+    here are files no reader would take)."""
     from statfit_cli.main import main
 
-    argv = {"register": ["register", str(tmp_path / "missing.ply"), "--method", "statistical"],
-            "render": ["render", str(tmp_path / "missing.exr"), "--method", "hybrid"],
-            "inpaint": ["inpaint", str(tmp_path / "missing.png"), "--mask", str(tmp_path / "m.png"),
+    inputs = tmp_path / "inputs"
+    inputs.mkdir()
+    for name in ("junk.ply", "junk.exr", "junk.png", "m.png"):
+        (inputs / name).write_bytes(b"not what its name says")
+    argv = {"register": ["register", str(inputs / "junk.ply"), "--method", "statistical"],
+            "render": ["render", str(inputs / "junk.exr"), "--method", "hybrid"],
+            "inpaint": ["inpaint", str(inputs / "junk.png"), "--mask", str(inputs / "m.png"),
                         "--method", "laplacian"]}[command]
     if command == "inpaint" and option[0] == "--power":
         option = ["--lam", "nan"]  # inpaint has no --power
@@ -149,7 +153,7 @@ def test_every_command_refuses_bad_settings_the_same_way(command, option, tmp_pa
     err = capsys.readouterr().err
     setting = option[0].lstrip("-").replace("lr", "lr (the step size)")
     assert exit_info.value.code == 2 and err.count("\n") == 1 and err.startswith(f"statfit: error: {setting}"), err
-    assert not any(tmp_path.iterdir())
+    assert [path.name for path in tmp_path.iterdir()] == ["inputs"]
 
 
 def test_gauss_newton_is_for_the_coefficients_only():
