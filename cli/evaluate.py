@@ -12,6 +12,7 @@ from rich.console import Console
 from rich.table import Table
 
 from statfit.errors import StatfitError
+from statfit_cli.common import refuse_missing
 
 
 MILLIMETRES_PER_UNIT = {"metres": 1000.0, "centimetres": 10.0, "millimetres": 1.0}
@@ -44,14 +45,19 @@ def evaluate(
         statfit eval fit.ply gt.ply --normals normals.exr --camera camera.json
         statfit eval fit.ply gt.ply --model flame.npz --region face
     """
-    from statfit.geometry.metrics import evaluate as evaluate_fit, observed_vertices
-    from statfit.io.mesh import read_mesh, read_points, read_vertex_fields
-    from statfit.model.statmodel import units_guess
-
     if scan is not None and normals is not None:
         raise StatfitError("give --scan or --normals, not both")
     if camera_path is not None and normals is None:
         raise StatfitError("--camera goes with --normals")
+    for mesh in (fit, gt):
+        refuse_missing({"file": mesh})
+    refuse_missing({"file": scan, "normal map": normals, "camera file": camera_path}, model_path)
+
+    # The library loads once the paths are known good: a mistyped name is refused at once.
+    from statfit.geometry.metrics import evaluate as evaluate_fit, observed_vertices
+    from statfit.io.mesh import read_mesh, read_points, read_vertex_fields
+    from statfit.model.statmodel import units_guess
+
     fit_vertices, faces = read_mesh(fit)
     gt_vertices, gt_faces = read_mesh(gt)
     if fit_vertices.shape != gt_vertices.shape or faces.shape != gt_faces.shape or (faces != gt_faces).any():

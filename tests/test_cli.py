@@ -285,7 +285,11 @@ def test_a_mistyped_path_is_refused_before_the_library_loads(tmp_path):
              "normal map not found: n.exr": ["render", "n.exr"],
              "camera file not found: c.json": ["render", "scan.ply", "--camera", "c.json"],
              "views folder not found: views": ["splat", "views"],
-             "mask not found: m.png": ["inpaint", "scan.ply", "--mask", "m.png"]}
+             "mask not found: m.png": ["inpaint", "scan.ply", "--mask", "m.png"],
+             "no file matches 'scans/*.ply'": ["batch", "register", "scans/*.ply", "--out-dir", "fits"],
+             "camera file not found: cams.json": ["batch", "render", "scan.ply", "--camera", "cams.json", "--out-dir",
+                                                  "fits"],
+             "file not found: gt.ply": ["eval", "scan.ply", "gt.ply"]}
     code = ("import sys\nfrom statfit_cli.main import main\n"
             f"for argv in {list(cases.values())!r}:\n"
             "    try:\n        main(argv)\n    except SystemExit as done:\n"
@@ -296,6 +300,7 @@ def test_a_mistyped_path_is_refused_before_the_library_loads(tmp_path):
     lines = done.stderr.strip().splitlines()
     assert lines[1::2] == ["2"] * len(cases), done.stderr
     assert [line.removeprefix("statfit: error: ") for line in lines[::2]] == list(cases), done.stderr
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["scan.ply"]   # no output, no --out-dir made
 
 
 def test_the_cli_starts_without_importing_matplotlib():

@@ -1,9 +1,13 @@
 """The options every fitting command of ``statfit batch`` shares, and its exit codes."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import typer
 
 from statfit.batch.manifest import MANIFEST_NAME
+from statfit.batch.plan import Item, expand_inputs, plan_outputs
+from statfit.errors import StatfitError
 from statfit_cli.common import within
 
 EXIT_FAILED = 1
@@ -28,3 +32,13 @@ JsonOption = typer.Option(False, "--json", help="Print each input's manifest lin
                           "lines on stdout.")
 BatchThreadsOption = typer.Option(None, help="CPU threads per fit. Default: 1 for head-sized models, else the "
                                   "cores shared among the workers.", show_default=False, callback=within(1, 256))
+
+
+def planned_inputs(inputs: list[str], out_dir: Path) -> list[Item]:
+    """Every input with its output under ``out_dir``, said before a command loads the library:
+    patterns that match no file, two outputs that would clash and an ``--out-dir`` that is a file
+    are refused in one line. Nothing is created."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise StatfitError(f"--out-dir is a file: {out_dir}")
+    return plan_outputs(expand_inputs(inputs, exclude=out_dir), out_dir)
+

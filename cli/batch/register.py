@@ -7,11 +7,11 @@ import typer
 
 from statfit.errors import StatfitError
 from statfit_cli.batch.options import (BatchThreadsOption, ClusterOption, ForceOption, InputsArgument, JsonOption,
-                                       OutDirOption, SchedulerOption, TimeoutOption, WorkersOption)
+                                       OutDirOption, SchedulerOption, TimeoutOption, WorkersOption, planned_inputs)
 from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, FallbackOption, IterationsOption, KOption,
                                 LamOption, LandmarkWeightOption, LaplacianOption, LrOption, MethodOption,
                                 ModeGainOption, ModelOption, PowerOption, PresetOption, QuietOption, SeedOption,
-                                clutter_choice, setting_overrides, within)
+                                clutter_choice, refuse_missing, setting_overrides, within)
 
 
 def batch_register(
@@ -76,6 +76,10 @@ def batch_register(
         statfit batch register 'scans/*.ply' --out-dir fits/ --device cuda --workers 4   # 4 × 64 scans at once
         statfit batch status fits/
     """
+    items = planned_inputs(inputs, out_dir)
+    refuse_missing({}, model_path)
+
+    # The library loads once the paths are known good: a mistyped name is refused at once.
     from statfit.batch.fits import FitJob
     from statfit.batch.plan import check_companion_template
     from statfit.core.device import resolve_device
@@ -83,7 +87,7 @@ def batch_register(
     from statfit.model.statmodel import region_vertices
     from statfit.registration.many import together_for
     from statfit.registration.prealign import ALIGNMENTS
-    from statfit_cli.batch.running import check_engine, model_identity, prepared_inputs, run_fits
+    from statfit_cli.batch.running import check_engine, create_out_dir, model_identity, run_fits
 
     check_engine(scheduler, cluster)
     overrides = setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain)
@@ -101,7 +105,7 @@ def batch_register(
                                "(`statfit model import --landmarks` stores them)")
     elif landmark_weight is not None:
         raise StatfitError("--landmark-weight weighs the landmarks of --landmarks; give both or neither")
-    items = prepared_inputs(inputs, out_dir)
+    create_out_dir(out_dir)
     fit_device = resolve_device(device, "register")
     options = dict(align=align, region=region, refresh_every=refresh, trim=trim, seed=seed,
                    clutter=clutter_choice(clutter))

@@ -11,10 +11,11 @@ from statfit.objectives.weights import SILHOUETTE_WEIGHT
 if TYPE_CHECKING:
     from statfit.batch.plan import Item
 from statfit_cli.batch.options import (BatchThreadsOption, ClusterOption, ForceOption, InputsArgument, JsonOption,
-                                       OutDirOption, SchedulerOption, TimeoutOption, WorkersOption)
+                                       OutDirOption, SchedulerOption, TimeoutOption, WorkersOption, planned_inputs)
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, KOption, LamOption, LaplacianOption,
                                 LrOption, MethodOption, ModeGainOption, ModelOption, PowerOption, PresetOption,
-                                QuietOption, SeedOption, SilhouetteOption, setting_overrides, within)
+                                QuietOption, SeedOption, SilhouetteOption, refuse_missing, setting_overrides,
+                                within)
 
 
 def batch_render(
@@ -70,13 +71,17 @@ def batch_render(
         statfit batch render 'maps/*.exr' --out-dir fits/ --params    # fits/<map>.params.json too
         statfit batch render 'maps/*.exr' --out-dir fits/ --device cuda --workers 4   # many maps at once a worker
     """
+    items = planned_inputs(inputs, out_dir)
+    refuse_missing({"camera file": camera_path}, model_path)
+
+    # The library loads once the paths are known good: a mistyped name is refused at once.
     from statfit.batch.fits import FitJob
     from statfit.core.device import resolve_device
     from statfit.io.normalmap import read_camera
     from statfit.model.statmodel import region_vertices
     from statfit.render.job import ALIGNMENTS, NORMAL_CONVENTIONS, NORMAL_SPACES, render_stages, silhouette_sides
     from statfit.render.many import together_for
-    from statfit_cli.batch.running import check_engine, model_identity, prepared_inputs, run_fits
+    from statfit_cli.batch.running import check_engine, create_out_dir, model_identity, run_fits
 
     check_engine(scheduler, cluster)
     if camera_path is not None and camera_from_header:
@@ -95,7 +100,7 @@ def batch_render(
     sides = silhouette_sides(silhouette, model)       # checked before any folder is made
     if region is not None:
         region_vertices(model, region)
-    items = prepared_inputs(inputs, out_dir)
+    create_out_dir(out_dir)
     fit_device = resolve_device(device, "render")
     if together is None:
         together = together_for(model, _map_pixels(items), fit_device) if fit_device.type == "cuda" else 1

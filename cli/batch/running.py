@@ -17,7 +17,6 @@ from rich.table import Table
 
 from statfit.batch.engines import DaskPool, Engine, LocalPool
 from statfit.batch.fits import FitJob
-from statfit.batch.plan import Item, expand_inputs, plan_outputs
 from statfit.batch.run import BatchReport, run_batch
 from statfit.core.threads import available_cores
 from statfit.errors import StatfitError
@@ -45,17 +44,12 @@ def engine_for(workers: int | None, scheduler: str | None, cluster: str | None) 
     return LocalPool(count, share), share
 
 
-def prepared_inputs(inputs: list[str], out_dir: Path) -> list[Item]:
-    """Every input with its output under ``out_dir`` (created), refused before any work if two
-    would clash."""
-    if out_dir.exists() and not out_dir.is_dir():
-        raise StatfitError(f"--out-dir is a file: {out_dir}")
-    items = plan_outputs(expand_inputs(inputs, exclude=out_dir), out_dir)
+def create_out_dir(out_dir: Path) -> None:
+    """``out_dir`` and its parents, once every check has passed; one line where it cannot be made."""
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise StatfitError(f"cannot create {out_dir}: {exc.strerror}") from None
-    return items
 
 
 def model_identity(model_path: Path | None, k: int | None) -> tuple[str | None, str, StatModel]:
