@@ -29,7 +29,6 @@ def existing_file(path: str | Path, what: str) -> Path:
     return path
 
 
-
 def existing_folder(path: str | Path, what: str) -> Path:
     """``path`` as a Path when it names a folder; otherwise one message saying whether it is
     missing or not a folder (``what`` names the folder: "views folder")."""
@@ -37,6 +36,7 @@ def existing_folder(path: str | Path, what: str) -> Path:
     if not path.is_dir():
         raise StatfitError(f"{what} {'is not a folder' if path.exists() else 'not found'}: {path}")
     return path
+
 
 def _umask() -> int:
     """The process's umask (read by setting it and putting it back)."""
