@@ -13,7 +13,8 @@ from rich.table import Table
 from statfit.errors import StatfitError
 if TYPE_CHECKING:
     from statfit.model.statmodel import StatModel
-from statfit_cli.common import QuietOption, SeedOption, count_bar, printed_warnings, seed_option, stage_line, within
+from statfit_cli.common import (QuietOption, SeedOption, count_bar, printed_warnings, refuse_missing, seed_option,
+                                stage_line, within)
 
 
 app = typer.Typer(help="Import, build, inspect and sample statistical models.", no_args_is_help=True)
@@ -171,11 +172,14 @@ def cut(
 
         statfit model cut ict.npz --region face --vertices 3000 --scale 10 -o face_mask_mm.npz
     """
+    _check_output(out, model_path)
+    refuse_missing({}, model_path)
+
+    # The library loads once the paths are known good: a mistyped name is refused at once.
     from statfit.model.cut import decimated, region_part, rescaled
     from statfit.model.importers.cache import open_model
     from statfit.model.statmodel import save_model, units_guess
 
-    _check_output(out, model_path)
     model = open_model(model_path)
     with printed_warnings():
         if region is not None:
@@ -215,16 +219,20 @@ def sample(
         statfit model sample flame.npz --sigma 2 --seed 1 -o sample.ply
         statfit model sample flame.npz --params fit.params.json -o projection.ply
     """
-    from statfit.io.mesh import mesh_bytes
     from statfit.io.files import check_writable, mesh_format, write_atomic
-    from statfit.model.importers.cache import open_model
-    from statfit.model.params import posed_shape
-    from statfit.model.params_file import read_params
 
     if not np.isfinite(sigma) or sigma < 0:
         raise StatfitError("--sigma must be a finite number ≥ 0")
     check_writable(out)
     mesh_format(out)
+    refuse_missing({"params file": params}, model_path)
+
+    # The library loads once the paths are known good: a mistyped name is refused at once.
+    from statfit.io.mesh import mesh_bytes
+    from statfit.model.importers.cache import open_model
+    from statfit.model.params import posed_shape
+    from statfit.model.params_file import read_params
+
     model = open_model(model_path, k)
     if params is not None:
         vertices = posed_shape(model, read_params(params, model))
@@ -240,6 +248,9 @@ def info(
     json_out: bool = typer.Option(False, "--json", help="Print as JSON."),
 ) -> None:
     """Vertices, faces, modes, variance explained, bounding box and a guess of the units of a model."""
+    refuse_missing({}, model_path)
+
+    # The library loads once the paths are known good: a mistyped name is refused at once.
     from statfit.model.importers import LIGHT_FACE_COUNT, LIGHT_LANDMARKS, unread_npz_keys
     from statfit.model.importers.cache import open_model
     from statfit.model.statmodel import units_guess

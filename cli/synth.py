@@ -8,7 +8,7 @@ import typer
 
 from statfit.errors import StatfitError
 from statfit.synth.scan_options import CLUTTER_PARTS, UNITS_PER_METRE
-from statfit_cli.common import ModelOption, QuietOption, count_bar, seed_option, within
+from statfit_cli.common import ModelOption, QuietOption, count_bar, refuse_missing, seed_option, within
 
 
 app = typer.Typer(help="Make synthetic test data from a model, with its ground truth.", no_args_is_help=True)
@@ -74,12 +74,7 @@ def scan(
         statfit synth scan --model model.npz --seed 3 --out scan.ply --gt gt.ply
         statfit synth scan --model model.npz --seed 3 --realistic --units mm --out scan.ply --gt gt.ply
     """
-    from statfit.io.landmarks import landmarks_text
-    from statfit.io.mesh import mesh_bytes, points_bytes
     from statfit.io.files import check_writable, mesh_format, write_atomic
-    from statfit.model.importers.cache import open_model
-    from statfit.synth.sample import scan_from_view
-    from statfit.synth.scanner import realistic_scan
 
     if points < 10:
         raise StatfitError("--points must be at least 10")
@@ -103,6 +98,15 @@ def scan(
     if gt is not None:
         mesh_format(gt)
     check_delta_options(delta, delta_name)
+    refuse_missing({"delta file": delta}, model_path)
+
+    # The library loads once the paths are known good: a mistyped name is refused at once.
+    from statfit.io.landmarks import landmarks_text
+    from statfit.io.mesh import mesh_bytes, points_bytes
+    from statfit.model.importers.cache import open_model
+    from statfit.synth.sample import scan_from_view
+    from statfit.synth.scanner import realistic_scan
+
     model = open_model(model_path)
     if landmarks_out is not None and model.landmarks is None:
         raise StatfitError(f"the model {model.source} has no landmarks to write")
@@ -147,12 +151,7 @@ def normals(
         statfit synth normals --model model.npz --seed 3 --yaw 20 --out normals.exr --camera-out camera.json --gt gt.ply
         statfit synth normals --model body.npz --shape person.ply --yaw 30 --size 768 --out body.exr --camera-out cam.json
     """
-    from statfit.io.mesh import mesh_bytes, read_mesh
     from statfit.io.files import check_writable, mesh_format, write_atomic
-    from statfit.io.normalmap import write_camera, write_normal_map
-    from statfit.model.importers.cache import open_model
-    from statfit.renderer.images import render_target
-    from statfit.synth.sample import camera_for_view
 
     check_delta_options(delta, delta_name)
     if shape_path is not None and delta is not None:
@@ -162,6 +161,15 @@ def normals(
             check_writable(target)
     if gt is not None:
         mesh_format(gt)
+    refuse_missing({"delta file": delta, "file": shape_path}, model_path)
+
+    # The library loads once the paths are known good: a mistyped name is refused at once.
+    from statfit.io.mesh import mesh_bytes, read_mesh
+    from statfit.io.normalmap import write_camera, write_normal_map
+    from statfit.model.importers.cache import open_model
+    from statfit.renderer.images import render_target
+    from statfit.synth.sample import camera_for_view
+
     model = open_model(model_path)
     if shape_path is None:
         shape = _target(model, np.random.default_rng(seed), sigma, delta, delta_name, delta_weight)

@@ -289,7 +289,10 @@ def test_a_mistyped_path_is_refused_before_the_library_loads(tmp_path):
              "no file matches 'scans/*.ply'": ["batch", "register", "scans/*.ply", "--out-dir", "fits"],
              "camera file not found: cams.json": ["batch", "render", "scan.ply", "--camera", "cams.json", "--out-dir",
                                                   "fits"],
-             "file not found: gt.ply": ["eval", "scan.ply", "gt.ply"]}
+             "file not found: gt.ply": ["eval", "scan.ply", "gt.ply"],
+             "model file not found: nosuch.npz": ["model", "info", "nosuch.npz"],
+             "params file not found: p.json": ["model", "sample", "--params", "p.json", "-o", "s.ply"],
+             "file not found: shape.ply": ["synth", "normals", "--shape", "shape.ply", "-o", "n.exr"]}
     code = ("import sys\nfrom statfit_cli.main import main\n"
             f"for argv in {list(cases.values())!r}:\n"
             "    try:\n        main(argv)\n    except SystemExit as done:\n"
