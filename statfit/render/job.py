@@ -25,7 +25,7 @@ from statfit.geometry.align import Similarity, compose
 from statfit.geometry.metrics import of_part_of_a_subject
 from statfit.errors import StatfitError
 from statfit.core.fit import StageTimer
-from statfit.structures.frame import Frame
+from statfit.structures.frame import Frame, surface_vertices
 from statfit.structures.normal_map import NormalMap
 from statfit.core.methods import resolve
 from statfit.core.settings import FitSpace, Settings
@@ -128,9 +128,9 @@ def _centring_guess(template: torch.Tensor, faces: torch.Tensor, camera: Camera,
 
 
 def _drawn(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
-    """The vertices (M, 3) of ``vertices`` (N, 3) that triangles use, detached: the pose turns and
-    scales about their centroid, wherever a vertex no face uses lies."""
-    return vertices.detach()[faces.unique()]
+    """The vertices (M, 3) of ``vertices`` (N, 3) that triangles use, detached (:func:`surface_vertices`):
+    the pose turns and scales about their centroid, wherever a vertex no face uses lies."""
+    return surface_vertices(vertices.detach(), faces.cpu().numpy())
 
 
 def _similarity_move(drawn: torch.Tensor, camera: Camera, model_centre: np.ndarray, target_centre: np.ndarray,
@@ -228,7 +228,7 @@ class PosedView:
         one_sided, covering = sides == "one-sided", sides == "covering"
         timer = timer or StageTimer.for_device(device)
         start_shape = model.template if init is None else checked_init(init, model)
-        check_framing(start_shape[np.unique(model.faces)], camera, normal_map.mask, align)   # the drawn vertices
+        check_framing(surface_vertices(start_shape, model.faces), camera, normal_map.mask, align)
         frame = model.frame
         space = FitSpace.of(model, frame, device, dtype)
         target = torch.as_tensor(camera_space_normals(normal_map, camera, normal_space, normal_convention),
