@@ -2,7 +2,8 @@
 
     python benchmarks/startup_time.py [--against REV] [--rounds 3]
 
-Each row is a fresh process, as a user's command is: `statfit --help`, and `statfit register` of the
+Each row is a fresh process, as a user's command is: `statfit --help`, `statfit register` of a scan
+that does not exist (refused: exit 2), and `statfit register` of the
 ICT jaw-open scan (4,300 points, the default method, one thread) whose wall time is split into the
 fit (the summary's ``seconds``: pose search, stages, fallback test) and the rest (the interpreter,
 imports, the model's load, reading the scan, writing the mesh). The revision runs from a git
@@ -41,14 +42,15 @@ def tree_path(revision: str | None, folder: Path) -> Path:
     return shim
 
 
-def timed(path: Path, argv: list[str]) -> tuple[float, str]:
-    """Wall seconds of ``statfit argv`` in a fresh process importing from ``path``, and its stdout."""
+def timed(path: Path, argv: list[str], code: int = 0) -> tuple[float, str]:
+    """Wall seconds of ``statfit argv`` in a fresh process importing from ``path``, and its stdout;
+    the process must exit with ``code``."""
     env = dict(os.environ, PYTHONPATH=str(path))
     started = time.perf_counter()
     done = subprocess.run([sys.executable, "-c", CLI, *argv], env=env, capture_output=True, text=True,
                           cwd=path)    # not a folder holding another tree's statfit, which `-c` would import first
     wall = time.perf_counter() - started
-    if done.returncode:
+    if done.returncode != code:
         raise SystemExit(f"statfit {' '.join(argv)} failed: {done.stderr.strip()[-500:]}")
     return wall, done.stdout
 
@@ -73,17 +75,19 @@ def main() -> None:
             for _ in range(args.rounds):
                 for name, path in trees.items():
                     help_wall, _ = timed(path, ["--help"])
+                    refusal, _ = timed(path, ["register", str(folder / "missing.ply")], code=2)
                     wall, out = timed(path, ["register", str(scan), "--model", str(ICT_MODEL), "--threads", "1",
                                              "--out", str(folder / "fit.ply"), "--json", "-q"])
                     fit = json.loads(out.strip().splitlines()[-1])["seconds"]
-                    rows[name].append({"help": help_wall, "register": wall, "fit": fit, "rest": wall - fit})
-                    print(f"{name:>12}: --help {help_wall:5.2f} s; register {wall:5.2f} s = fit {fit:5.2f} "
-                          f"+ the rest {wall - fit:5.2f}", flush=True)
+                    rows[name].append({"help": help_wall, "refusal": refusal, "register": wall, "fit": fit,
+                                       "rest": wall - fit})
+                    print(f"{name:>12}: --help {help_wall:5.2f} s; missing scan {refusal:5.2f} s; register "
+                          f"{wall:5.2f} s = fit {fit:5.2f} + the rest {wall - fit:5.2f}", flush=True)
         finally:
             if args.against:
                 subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(folder / "worktree")],
                                capture_output=True)
-        for key in ("help", "register", "fit", "rest"):
+        for key in ("help", "refusal", "register", "fit", "rest"):
             medians = {name: statistics.median(row[key] for row in rows[name]) for name in trees}
             ratio = (f"; this tree ÷ {args.against} {medians['this tree'] / medians[args.against]:.3f}"
                      if args.against else "")
