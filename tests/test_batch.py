@@ -247,9 +247,11 @@ def test_a_killed_batch_resumes_without_redoing_what_it_recorded(scans, tmp_path
 
 
 def test_sigterm_stops_the_batch_with_code_130_and_a_clean_manifest(scans, tmp_path):
+    """A scheduler's SIGTERM after the first recorded fit. ``--together 1``: on a GPU a batch steps its
+    scans together by default, and all ten then finish at once, before the signal (session 33's card)."""
     out = tmp_path / "fits"
     command = [sys.executable, "-m", "statfit_cli.main", "batch", "register", str(scans / "**" / "scan*.ply"),
-               "--out-dir", str(out), "--workers", "1", "--iterations", "300", "--align", "none"]
+               "--out-dir", str(out), "--workers", "1", "--together", "1", "--iterations", "300", "--align", "none"]
     process = subprocess.Popen(command, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and len(fit_rows(out) if out.exists() else []) < 1:
