@@ -74,10 +74,13 @@ def import_(
 
     Any command's --model also takes the original file directly (imported once, cached).
     """
+    _check_output(out, source, *[p for p in (masks, landmarks) if p is not None])
+    refuse_missing({"mask file": masks, "landmark file": landmarks}, source)
+
+    # The library loads once the paths are known good: a mistyped name is refused at once.
     from statfit.model.importers import import_model
     from statfit.model.statmodel import save_model
 
-    _check_output(out, source, *[p for p in (masks, landmarks) if p is not None])
     model = import_model(source, k=k, expressions=expressions, region=region, masks=masks, landmarks=landmarks)
     save_model(model, out)
     print(f"{out}: {_summary(model)} (from {model.source})")
@@ -98,10 +101,15 @@ def build(
 
         statfit model build registered/*.ply -o mine.npz --k 50
     """
+    from statfit.io.files import existing_file
+
+    _check_output(out, *meshes)
+    for mesh in meshes:
+        existing_file(mesh, "file")
+
     from statfit.model.build import build_model_from_files
     from statfit.model.statmodel import save_model
 
-    _check_output(out, *meshes)
     with printed_warnings():
         built = build_model_from_files(meshes, k, seed=seed)
     save_model(built.model, out)
@@ -134,11 +142,15 @@ def build_makehuman(
 
         statfit model build-makehuman ../shared/data/makehuman -o body.npz --k 300 --samples 5000 --seed 0
     """
+    from statfit.io.makehuman_layout import makehuman_folder
+
+    _check_output(out)
+    makehuman_folder(folder)
+
     from statfit.model.importers.makehuman import read_makehuman
     from statfit.model.importers.makehuman_shapes import body_regions, BodySpace, build_body_model
     from statfit.model.statmodel import save_model
 
-    _check_output(out)
     with count_bar("reading MakeHuman's morph targets", not quiet) as advance:
         space = BodySpace(read_makehuman(folder, advance))
     with stage_line(f"learning {k} modes from {samples:,} random bodies", not quiet):

@@ -148,6 +148,7 @@ def normals(
     """A model sample (or a given --shape) seen by a pinhole camera: a normal map plus its camera and
     ground truth.
 
+        \b
         statfit synth normals --model model.npz --seed 3 --yaw 20 --out normals.exr --camera-out camera.json --gt gt.ply
         statfit synth normals --model body.npz --shape person.ply --yaw 30 --size 768 --out body.exr --camera-out cam.json
     """
@@ -203,16 +204,22 @@ def body(
 ) -> None:
     """A random MakeHuman body, as ground truth for full-body tests (docs/bodies.md).
 
+        \b
         statfit synth body ../shared/data/makehuman --seed 4 -o person.ply
         statfit synth normals --model body.npz --shape person.ply --yaw 30 --size 768 --out body.exr --camera-out cam.json
     """
-    from statfit.io.mesh import mesh_bytes
     from statfit.io.files import check_writable, mesh_format, write_atomic
-    from statfit.model.importers.makehuman import read_makehuman
-    from statfit.model.importers.makehuman_shapes import BodySpace
+    from statfit.io.makehuman_layout import makehuman_folder
 
     check_writable(out)
     mesh_format(out)
+    makehuman_folder(folder)
+
+    # The library loads once the paths are known good: a mistyped name is refused at once.
+    from statfit.io.mesh import mesh_bytes
+    from statfit.model.importers.makehuman import read_makehuman
+    from statfit.model.importers.makehuman_shapes import BodySpace
+
     with count_bar("reading MakeHuman's morph targets", not quiet) as advance:
         space = BodySpace(read_makehuman(folder, advance))
     weights = space.weights(np.random.default_rng(seed), 1, "held_out" if held_out else "train")
@@ -240,9 +247,16 @@ def views(
     """Photographs of a textured model sample (a generated albedo, a fixed light) from many
     cameras, with the cameras and the ground truth: the input of `statfit splat`.
 
+        \b
         statfit synth views --model model.npz --seed 2 --views 24 --size 256 --out views/
         statfit synth views --model ict.npz --delta expressions.npz --delta-name jawOpen --out views/
     """
+    check_delta_options(delta, delta_name)
+    if out.exists() and not out.is_dir():
+        raise StatfitError(f"{out} exists and is not a folder")
+    refuse_missing({"delta file": delta}, model_path)
+
+    # The library loads once the paths are known good: a mistyped name is refused at once.
     from statfit.io.image import write_image
     from statfit.io.mesh import mesh_bytes
     from statfit.io.files import write_atomic
@@ -251,9 +265,6 @@ def views(
     from statfit.renderer.images import photograph
     from statfit.synth.views import generated_albedo, held_out_split, hemisphere_cameras
 
-    check_delta_options(delta, delta_name)
-    if out.exists() and not out.is_dir():
-        raise StatfitError(f"{out} exists and is not a folder")
     model = open_model(model_path)
     rng = np.random.default_rng(seed)
     shape = _target(model, rng, sigma, delta, delta_name, delta_weight)

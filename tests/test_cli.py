@@ -278,23 +278,31 @@ def test_a_mistyped_path_is_refused_before_the_library_loads(tmp_path):
     import sys
 
     (tmp_path / "scan.ply").write_text("ply")
-    cases = {"scan not found: nosuch.ply": ["register", "nosuch.ply"],
-             "model file not found: nosuch.npz": ["register", "scan.ply", "--model", "nosuch.npz"],
-             "landmark file not found: l.txt": ["register", "scan.ply", "--landmarks", "l.txt"],
-             "output folder does not exist: nodir": ["register", "scan.ply", "--out", "nodir/fit.ply"],
-             "normal map not found: n.exr": ["render", "n.exr"],
-             "camera file not found: c.json": ["render", "scan.ply", "--camera", "c.json"],
-             "views folder not found: views": ["splat", "views"],
-             "mask not found: m.png": ["inpaint", "scan.ply", "--mask", "m.png"],
-             "no file matches 'scans/*.ply'": ["batch", "register", "scans/*.ply", "--out-dir", "fits"],
-             "camera file not found: cams.json": ["batch", "render", "scan.ply", "--camera", "cams.json", "--out-dir",
-                                                  "fits"],
-             "file not found: gt.ply": ["eval", "scan.ply", "gt.ply"],
-             "model file not found: nosuch.npz": ["model", "info", "nosuch.npz"],
-             "params file not found: p.json": ["model", "sample", "--params", "p.json", "-o", "s.ply"],
-             "file not found: shape.ply": ["synth", "normals", "--shape", "shape.ply", "-o", "n.exr"]}
+    makehuman = "mh is not a folder (expected the MakeHuman data folder: 3dobjs/, targets/, mesh_metadata/)"
+    cases = [("scan not found: nosuch.ply", ["register", "nosuch.ply"]),
+             ("model file not found: nosuch.npz", ["register", "scan.ply", "--model", "nosuch.npz"]),
+             ("landmark file not found: l.txt", ["register", "scan.ply", "--landmarks", "l.txt"]),
+             ("output folder does not exist: nodir", ["register", "scan.ply", "--out", "nodir/fit.ply"]),
+             ("normal map not found: n.exr", ["render", "n.exr"]),
+             ("camera file not found: c.json", ["render", "scan.ply", "--camera", "c.json"]),
+             ("views folder not found: views", ["splat", "views"]),
+             ("mask not found: m.png", ["inpaint", "scan.ply", "--mask", "m.png"]),
+             ("no file matches 'scans/*.ply'", ["batch", "register", "scans/*.ply", "--out-dir", "fits"]),
+             ("camera file not found: cams.json", ["batch", "render", "scan.ply", "--camera", "cams.json", "--out-dir",
+                                                   "fits"]),
+             ("file not found: gt.ply", ["eval", "scan.ply", "gt.ply"]),
+             ("model file not found: nosuch.npz", ["model", "info", "nosuch.npz"]),
+             ("params file not found: p.json", ["model", "sample", "--params", "p.json", "-o", "s.ply"]),
+             ("model file not found: nosuch.pkl", ["model", "import", "nosuch.pkl", "-o", "m.npz"]),
+             ("mask file not found: masks.pkl", ["model", "import", "scan.ply", "-o", "m.npz", "--masks", "masks.pkl"]),
+             ("file not found: b.ply", ["model", "build", "scan.ply", "b.ply", "-o", "m.npz"]),
+             (makehuman, ["model", "build-makehuman", "mh", "-o", "m.npz"]),
+             ("file not found: shape.ply", ["synth", "normals", "--shape", "shape.ply", "-o", "n.exr"]),
+             (makehuman, ["synth", "body", "mh", "-o", "b.ply"]),
+             ("delta file not found: d.npz", ["synth", "views", "--delta", "d.npz", "--delta-name", "jawOpen", "-o",
+                                              "views"])]
     code = ("import sys\nfrom statfit_cli.main import main\n"
-            f"for argv in {list(cases.values())!r}:\n"
+            f"for argv in {[argv for _, argv in cases]!r}:\n"
             "    try:\n        main(argv)\n    except SystemExit as done:\n"
             "        print(done.code, file=sys.stderr)\n"
             "print(sorted(m for m in ('torch', 'trimesh', 'scipy') if m in sys.modules))")
@@ -302,7 +310,7 @@ def test_a_mistyped_path_is_refused_before_the_library_loads(tmp_path):
     assert done.returncode == 0 and done.stdout.strip() == "[]", (done.stdout[-500:], done.stderr[-2000:])
     lines = done.stderr.strip().splitlines()
     assert lines[1::2] == ["2"] * len(cases), done.stderr
-    assert [line.removeprefix("statfit: error: ") for line in lines[::2]] == list(cases), done.stderr
+    assert [line.removeprefix("statfit: error: ") for line in lines[::2]] == [line for line, _ in cases], done.stderr
     assert sorted(path.name for path in tmp_path.iterdir()) == ["scan.ply"]   # no output, no --out-dir made
 
 

@@ -19,12 +19,8 @@ from typing import Callable
 import numpy as np
 
 from statfit.errors import StatfitError
+from statfit.io.makehuman_layout import BASE_MESH, SLIDERS, TARGETS, VERTEX_GROUPS, makehuman_folder
 
-BASE_MESH = Path("3dobjs/base.obj.gz")
-TARGETS = Path("targets")
-SLIDERS = TARGETS / "target.json"
-VERTEX_GROUPS = Path("mesh_metadata/basemesh_vertex_groups.json")
-LAYOUT = (BASE_MESH, SLIDERS, VERTEX_GROUPS, TARGETS / "macrodetails")
 DECIMETRE = 0.1  # MakeHuman's unit, in metres
 BODY_GROUP = "body"
 MAX_FILE_BYTES = 64 << 20  # decompressed; the base mesh is ~2 MB, the largest target ~1 MB
@@ -57,13 +53,7 @@ class MakeHumanData:
 def read_makehuman(folder: str | Path, progress: Callable[[int, int], None] | None = None) -> MakeHumanData:
     """Read a MakeHuman folder; a folder of another layout is refused with one line naming what is missing.
     ``progress(done, total)`` is called after each morph target read (1,258 of them: ~5 s on one core)."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise StatfitError(f"{folder} is not a folder (expected the MakeHuman data folder: 3dobjs/, targets/, "
-                           "mesh_metadata/)")
-    missing = [str(part) for part in LAYOUT if not (folder / part).exists()]
-    if missing:
-        raise StatfitError(f"{folder} is not a MakeHuman data folder: it lacks {', '.join(missing)}")
+    folder = makehuman_folder(folder)
     groups = _vertex_groups(folder / VERTEX_GROUPS)
     if BODY_GROUP not in groups:
         raise StatfitError(f"{folder / VERTEX_GROUPS} has no {BODY_GROUP!r} group")
