@@ -140,7 +140,10 @@ class SteadyRenderer(SteadyBuffers):
                 refresh = bool((screen - self._visible.screen).abs().amax() > moved)
         if refresh or self._visible is None:
             with torch.no_grad():
-                self._visible = self._visibility(screen, depth)
+                # The kept positions detached: a Visibility kept past this iteration must not hold its
+                # autograd graph (a graph alive across a CUDA graph's capture ties the parameters'
+                # gradient to the warm-up's stream: torch warns, and may wait for that stream).
+                self._visible = self._visibility(screen.detach(), depth)
         seen = self._visible
         data = torch.cat([screen.T, depth.T, normals])                                  # (6, N)
         with torch.no_grad():
