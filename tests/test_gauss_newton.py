@@ -69,7 +69,10 @@ def test_prior_shrinks_towards_the_mean(embedded_model, rng):
 
 
 def test_continuation_relaxes_the_prior_to_the_final_noise(embedded_model, rng):
-    """The path ends where a fit at the final σ that starts at the path's end would stay."""
+    """The path ends where a fit at the final σ that starts at the path's end would stay. Within
+    1e-2 of coefficients up to 3.5: the two stop at their tolerance 0.0002–0.0022 apart with the
+    thread count and the library versions (numpy 2.4 one thread, numpy 1.26 two threads; session
+    33), where a final σ 25% off ends 0.20 away."""
     target = embedded_model.shape(1.5 * rng.standard_normal(embedded_model.num_modes))
     points = scan_from_view(target, embedded_model.faces, rng, 2000, 10.0)
     frame = Frame.of(embedded_model.template)
@@ -78,7 +81,7 @@ def test_continuation_relaxes_the_prior_to_the_final_noise(embedded_model, rng):
                             space.mean, 200, 0.01, levels=5, tolerance=1e-8)
     again = fit_coefficients(space.mean, space.basis_t, space.std, _scan_objective(embedded_model, points, frame),
                              path.vertices, 200, 0.01, levels=1, tolerance=1e-8)
-    np.testing.assert_allclose(path.coefficients.numpy(), again.coefficients.numpy(), atol=2e-3)  # coefficients ~1.5
+    np.testing.assert_allclose(path.coefficients.numpy(), again.coefficients.numpy(), atol=1e-2)
 
 
 def test_pca_method_is_the_closed_form_stage_and_beats_adam_at_equal_time(embedded_model, rng):

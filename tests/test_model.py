@@ -68,7 +68,10 @@ def test_embedded_model_generator_is_deterministic(tmp_path):
                    capture_output=True)
     with np.load(default_model_path()) as shipped, np.load(tmp_path / "again.npz") as again:
         assert sorted(shipped.files) == sorted(again.files)
-        for key in ("v_template", "faces", "landmarks"):
+        for key in ("faces", "landmarks"):
             np.testing.assert_array_equal(shipped[key], again[key])
+        # numpy's own arithmetic may differ in the last bit between versions (1.26.0, the oldest
+        # pyproject allows: 52 of 14,526 template coordinates 3e-18 off, session 33's check).
+        np.testing.assert_allclose(shipped["v_template"], again["v_template"], rtol=0, atol=1e-12)
         # SVD signs are fixed by the generator; allow last-bit differences across BLAS builds.
         np.testing.assert_allclose(shipped["shapedirs"], again["shapedirs"], atol=1e-6)
