@@ -13,7 +13,11 @@ one replay. What the capture needs of the parts (and what :func:`capturable` che
 - an objective that sizes buffers on the device tells the loop after each replay whether they
   still fit (``replayed() -> bool``); when not, the loop runs the next iteration eagerly (which
   sizes them afresh) and captures again;
-- the optimisers' step counts live on the device (:func:`statfit.core.optim.make_capturable`).
+- the optimisers' step counts live on the device (:func:`statfit.core.optim.make_capturable`);
+- nothing the parts keep from one iteration to the next holds its autograd graph (detach what is
+  kept): a graph alive at the capture reaches the parameters, whose gradient accumulation then stays
+  on the warm-up's stream (torch warns; ``tests/test_graphs.py`` searches the live tensors at each
+  capture on a CPU).
 
 The replays run the captured kernels in the captured order on the same memory, so a replayed
 iteration computes what the eager one does (the optimiser's bias corrections from a device-side
