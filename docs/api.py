@@ -6,6 +6,7 @@ import argparse
 import os
 from pathlib import Path
 
+
 def modules() -> list[str]:
     """statfit and every module in it (the package's ``__all__`` would hide the submodules)."""
     import pkgutil
@@ -15,11 +16,26 @@ def modules() -> list[str]:
     return ["statfit", *sorted(m.name for m in pkgutil.walk_packages(statfit.__path__, "statfit."))]
 
 
+def specs(names: list[str]) -> list[str]:
+    """``names`` less those pdoc already adds when it walks an earlier one (a package without
+    ``__all__`` brings its submodules): the same pages, without pdoc's warning for each module
+    named twice."""
+    from pdoc.extract import walk_specs
+
+    covered: set[str] = set()
+    kept = []
+    for name in names:
+        if name not in covered:
+            kept.append(name)
+            covered.update(walk_specs([name]))
+    return kept
+
+
 def build(out: Path) -> None:
     os.environ.setdefault("PDOC_ALLOW_EXEC", "1")  # our modules run no subprocess at import; platform's uname may
     import pdoc
 
-    pdoc.pdoc(*modules(), output_directory=out)
+    pdoc.pdoc(*specs(modules()), output_directory=out)
 
 
 def main() -> None:
