@@ -94,7 +94,9 @@ def test_a_render_iteration_counts(embedded_model, monkeypatch, gpu_path, most):
     2026-11-27: products over a size-3 axis added in order (the same bits) instead of made whole and
     summed, for 3–9% less time an iteration on one CPU thread (docs/benchmarks.md §12). 777 since
     session 23: no dump slot for CUDA's deterministic scatters to serialise (docs/method.md). 775
-    since 2026-11-28: the optimisers' steps record no profiler range (statfit.core.optim).
+    since 2026-11-28: the optimisers' steps record no profiler range (statfit.core.optim). 776 since
+    session 33: the renderer's kept screen positions detached (no autograd graph kept across a CUDA
+    capture, tests/test_graphs.py).
 
     The renderer's GPU path (``lookups``: slots looked up, masked writes spread) is counted on a CPU
     too: a host wait there would end every CUDA capture, and no CPU run would see it. 749 ops per
