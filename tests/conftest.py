@@ -90,6 +90,18 @@ def _threads():
     torch.set_num_threads(max(1, 2 // workers))
 
 
+@pytest.fixture(scope="module")
+def scan_files(tmp_path_factory) -> tuple[Path, Path]:
+    """``statfit synth scan --seed 3``'s scan and ground truth (the CLI tests' input), made once a file."""
+    from statfit_cli.main import main
+
+    folder = tmp_path_factory.mktemp("scan")
+    with pytest.raises(SystemExit) as exit_info:
+        main(["synth", "scan", "--seed", "3", "--out", str(folder / "scan.ply"), "--gt", str(folder / "gt.ply")])
+    assert exit_info.value.code == 0
+    return folder / "scan.ply", folder / "gt.ply"
+
+
 def run_cli(argv: list[str]) -> tuple[int, str]:
     """Run ``statfit argv`` in this process: (exit code, stderr); stdout is discarded."""
     import contextlib

@@ -22,15 +22,6 @@ def run(argv: list[str], capsys) -> tuple[int, str, str]:
     return exit_info.value.code, out, err
 
 
-@pytest.fixture(scope="module")
-def scan_files(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("scan")
-    with pytest.raises(SystemExit) as exit_info:
-        main(["synth", "scan", "--seed", "3", "--out", str(folder / "scan.ply"), "--gt", str(folder / "gt.ply")])
-    assert exit_info.value.code == 0
-    return folder / "scan.ply", folder / "gt.ply"
-
-
 def test_synth_register_eval(scan_files, tmp_path, capsys):
     scan, gt = scan_files
     fit, log = tmp_path / "fit.ply", tmp_path / "fit.jsonl"

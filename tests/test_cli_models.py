@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 
 from model_files import random_smpl_arrays, write_flame_masks, write_flame_pickle
 from statfit.model.statmodel import default_model_path, load_model, model_arrays
-from test_cli import FAST, run, scan_files  # noqa: F401 (scan_files is a fixture)
+from test_cli import FAST, run
 
 
 @pytest.fixture(autouse=True)
