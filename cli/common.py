@@ -223,14 +223,19 @@ def clutter_choice(value: str) -> bool | None:
     return CLUTTER_CHOICES[value]
 
 
-def refuse_missing(files: dict[str, str | Path | None], model: Path | None = None,
+InputPath = str | Path | None
+
+
+def refuse_missing(files: dict[str, InputPath | list[InputPath]], model: Path | None = None,
                    folders: dict[str, str | Path] | None = None) -> None:
     """The readers' one line for a mistyped input name, said before a command loads the library
-    (~2 s of imports): each of ``files`` (what it is → path; None and '-' skipped) must be a file,
-    each of ``folders`` a folder; ``model``, when given, a file or a folder (ICT-FaceKit's)."""
-    for what, path in files.items():
-        if path is not None and str(path) != "-":
-            existing_file(path, what)
+    (~2 s of imports): each of ``files`` (what it is → its path, or a list of paths of that kind;
+    None and '-' skipped) must be a file, each of ``folders`` a folder; ``model``, when given, a
+    file or a folder (ICT-FaceKit's)."""
+    for what, paths in files.items():
+        for path in paths if isinstance(paths, list) else [paths]:
+            if path is not None and str(path) != "-":
+                existing_file(path, what)
     for what, path in (folders or {}).items():
         existing_folder(path, what)
     if model is not None and not Path(model).is_dir():

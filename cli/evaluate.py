@@ -49,9 +49,7 @@ def evaluate(
         raise StatfitError("give --scan or --normals, not both")
     if camera_path is not None and normals is None:
         raise StatfitError("--camera goes with --normals")
-    for mesh in (fit, gt):
-        refuse_missing({"file": mesh})
-    refuse_missing({"file": scan, "normal map": normals, "camera file": camera_path}, model_path)
+    refuse_missing({"file": [fit, gt, scan], "normal map": normals, "camera file": camera_path}, model_path)
 
     # The library loads once the paths are known good: a mistyped name is refused at once.
     from statfit.geometry.metrics import evaluate as evaluate_fit, observed_vertices

@@ -101,12 +101,10 @@ def build(
 
         statfit model build registered/*.ply -o mine.npz --k 50
     """
-    from statfit.io.files import existing_file
-
     _check_output(out, *meshes)
-    for mesh in meshes:
-        existing_file(mesh, "file")
+    refuse_missing({"file": list(meshes)})
 
+    # The library loads once the paths are known good: a mistyped name is refused at once.
     from statfit.model.build import build_model_from_files
     from statfit.model.statmodel import save_model
 

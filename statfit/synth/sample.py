@@ -6,6 +6,7 @@ import numpy as np
 import trimesh
 
 from statfit.errors import StatfitError
+from statfit.io.npz import read_npz
 from statfit.structures.frame import Frame, surface_vertices
 from statfit.model.statmodel import StatModel
 from statfit.structures.camera import Camera
@@ -24,13 +25,10 @@ def sample_target(model: StatModel, rng: np.random.Generator, sigma: float = 1.0
 
 def load_delta(path: str, name: str) -> np.ndarray:
     """One named delta (N, 3) from an npz with ``names (D,)`` and ``deltas (N, 3, D)``."""
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            names, deltas = [str(n) for n in data["names"]], data["deltas"]
-    except FileNotFoundError:
-        raise StatfitError(f"delta file not found: {path}") from None
-    except (OSError, ValueError, KeyError) as exc:
-        raise StatfitError(f"cannot read deltas from {path} (need keys names, deltas): {exc}") from None
+    data = read_npz(path, "delta")
+    if "names" not in data or "deltas" not in data:
+        raise StatfitError(f"cannot read deltas from {path}: it needs the keys names and deltas")
+    names, deltas = [str(n) for n in data["names"]], data["deltas"]
     if name not in names:
         raise StatfitError(f"{path} has no delta named {name!r}; it has {', '.join(names[:8])}...")
     return deltas[..., names.index(name)].astype(np.float64)
