@@ -16,7 +16,8 @@ from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, Fallbac
 
 def register(
     scans: list[str] = typer.Argument(..., metavar="SCAN", help="Scan file: any point cloud or mesh (PLY, OBJ, STL, "
-                                      "OFF); '-' reads a PLY from standard input. For many scans: `statfit batch "
+                                      "OFF), or a text point cloud (XYZ, ASC, CSV, TXT: rows starting x y z); '-' "
+                                      "reads a PLY from standard input. For many scans: `statfit batch "
                                       "register`.", show_default=False),
     model_path: Path = ModelOption,
     k: int = KOption,

@@ -11,9 +11,11 @@ import trimesh
 
 from statfit.errors import StatfitError
 from statfit.io.files import existing_file
+from statfit.io.point_text import POINT_TEXT_SUFFIXES, SNIFF_BYTES, read_point_text
 from statfit.structures.scan import Scan
 
 MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off")
+SUFFIXES = MESH_SUFFIXES + POINT_TEXT_SUFFIXES      # and text point clouds (statfit.io.point_text)
 # The largest mesh or point-cloud file read, and how much of a file its header may take.
 MAX_FILE_BYTES = 4 << 30
 HEADER_BYTES = 1 << 16
@@ -33,17 +35,20 @@ def _load(source: str | Path):
         size = path.stat().st_size
         if size == 0:
             raise StatfitError(f"{path} is empty")
-        if path.suffix.lower() not in MESH_SUFFIXES:
-            raise StatfitError(f"{path}: unsupported format {path.suffix!r}; use one of {', '.join(MESH_SUFFIXES)}")
+        suffix = path.suffix.lower()
+        if suffix not in SUFFIXES:
+            raise StatfitError(f"{path}: unsupported format {path.suffix!r}; use one of {', '.join(SUFFIXES)}")
         if size > MAX_FILE_BYTES:
             raise StatfitError(f"{path} is {size / 2**30:.1f} GiB; statfit reads meshes up to "
                                f"{MAX_FILE_BYTES / 2**30:.0f} GiB")
         with open(path, "rb") as handle:
-            head = handle.read(HEADER_BYTES)
-        if path.suffix.lower() == ".ply":
+            head = handle.read(max(HEADER_BYTES, SNIFF_BYTES))
+        if suffix in POINT_TEXT_SUFFIXES:
+            return trimesh.PointCloud(read_point_text(path, head))
+        if suffix == ".ply":
             _check_ply_header(head, size, str(path))
         geometry = trimesh.load(path, process=False, maintain_order=True)
-        return _counted(geometry, head, str(path)) if path.suffix.lower() == ".ply" else geometry
+        return _counted(geometry, head, str(path)) if suffix == ".ply" else geometry
     except StatfitError:
         raise
     except PermissionError:
@@ -95,7 +100,8 @@ def _points_of(geometry, source: str | Path) -> np.ndarray:
     vertices = np.asarray(vertices, dtype=np.float64)
     bad = ~np.isfinite(vertices).all(axis=1)
     if bad.any():
-        raise StatfitError(f"{source} has NaN or infinite coordinates ({int(bad.sum())} points)")
+        raise StatfitError(f"{source} has NaN or infinite coordinates ({int(bad.sum())} "
+                           f"{'point' if bad.sum() == 1 else 'points'})")
     return vertices
 
 

@@ -29,9 +29,10 @@ def check_scan(points: np.ndarray, source: str = "scan") -> np.ndarray:
     if len(points) == 0:
         raise StatfitError(f"{source} has no points")
     if not np.isfinite(points).all():
-        raise StatfitError(f"{source} has NaN or infinite coordinates ({int((~np.isfinite(points)).any(axis=1).sum())} points)")
+        bad = int((~np.isfinite(points)).any(axis=1).sum())
+        raise StatfitError(f"{source} has NaN or infinite coordinates ({bad} {'point' if bad == 1 else 'points'})")
     if len(points) < 10:
-        raise StatfitError(f"{source} has only {len(points)} points; need at least 10")
+        raise StatfitError(f"{source} has only {len(points)} {'point' if len(points) == 1 else 'points'}; need at least 10")
     largest = float(np.abs(points).max())
     if largest > IMPLAUSIBLE_COORDINATE:
         raise StatfitError(f"{source} has coordinates as large as {largest:.3g}: not a scan in any length unit "
