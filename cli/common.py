@@ -223,6 +223,18 @@ def clutter_choice(value: str) -> bool | None:
     return CLUTTER_CHOICES[value]
 
 
+# What a fit preview's views of the fitted mesh show: its normals, or a per-vertex field of its PLY.
+PREVIEW_COLOURS = ("normals", "data_distance", "off_span", "observed")
+
+
+def check_preview(path: Path | None, colour: str) -> None:
+    """A ``--preview`` PNG path and its ``--preview-colour``, refused before any work."""
+    if colour not in PREVIEW_COLOURS:
+        raise StatfitError(f"unknown --preview-colour {colour!r}; choose one of {', '.join(PREVIEW_COLOURS)}")
+    if path is not None and Path(path).suffix.lower() != ".png":
+        raise StatfitError(f"--preview {path}: a preview is a PNG image; name it .png")
+
+
 InputPath = str | Path | None
 
 

@@ -10,7 +10,7 @@ from statfit.io.files import check_writable, mesh_format, params_suffix
 from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, FallbackOption, IterationsOption, JsonOption,
                                 KOption, LamOption, LandmarkWeightOption, LaplacianOption, LogOption, LrOption,
                                 MethodOption, ModeGainOption, ModelOption, ParamsOption, PowerOption, PresetOption,
-                                QuietOption, SeedOption, ThreadsOption, clutter_choice, refuse_missing,
+                                QuietOption, SeedOption, ThreadsOption, check_preview, clutter_choice, refuse_missing,
                                 setting_overrides, within)
 
 
@@ -27,6 +27,11 @@ def register(
     out: str = typer.Option(None, "--out", "-o", help="Fitted mesh (.ply or .obj; '-' for PLY on stdout). "
                             "Default: <scan>_fit.ply here.", show_default=False),
     log: Path = LogOption,
+    preview: Path = typer.Option(None, help="PNG: the scan's points over the fit, and the fit from the front, turned "
+                                 "70° and from behind, coloured by --preview-colour.", show_default=False),
+    preview_colour: str = typer.Option("data_distance", "--preview-colour", help="What the preview's views of the "
+                                       "fit show: where it guessed — data_distance (to the nearest scan point), "
+                                       "off_span or observed (the fitted PLY's fields, in colour) — or normals."),
     params: Path = ParamsOption,
     align: str = typer.Option("auto", help="Pre-alignment. auto: finds the scan's pose, scale and units (mm, cm, m) "
                               "without landmarks, and leaves a scan already on the model where it is; none: the scan "
@@ -69,6 +74,7 @@ def register(
         statfit register scan.ply --model model.npz --method statistical --out fit.ply --log fit.jsonl
         statfit register scan.ply --model flame.npz --region face --landmarks scan_landmarks.txt
         statfit register scan.ply --out fit.ply --params fit.params.json
+        statfit register scan.xyz --out fit.ply --preview fit.png
 
     The PLY's vertices carry data_distance (to the nearest scan point), observed (0/1) and
     off_span (distance from the model's span), in the scan's units (docs/formats.md).
@@ -82,7 +88,8 @@ def register(
         raise StatfitError("--json and --out - both want standard output; choose one")
     if params is not None:
         params_suffix(params)
-    for path in (target, log, params):
+    check_preview(preview, preview_colour)
+    for path in (target, log, params, preview):
         if path is not None:
             check_writable(path)
     mesh_format(target)
@@ -129,4 +136,9 @@ def register(
     outputs = {target: mesh_bytes(result.vertices, model.faces, mesh_format(target), fields)}
     if params is not None:
         outputs[params] = params_bytes(model, projection, params)
+    if preview is not None:
+        from statfit.registration.preview import register_preview_png  # matplotlib: only for a preview
+        colour = None if preview_colour == "normals" else (preview_colour, fields[preview_colour])
+        outputs[preview] = register_preview_png(result.vertices, model.faces, points.points,
+                                                result.transform.as_matrix()[:3, :3], colour)
     finish(run, summary, outputs, json_out)

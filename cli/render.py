@@ -11,9 +11,7 @@ from statfit.objectives.weights import SILHOUETTE_WEIGHT
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
                                 LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
                                 ParamsOption, PowerOption, PresetOption, QuietOption, SeedOption, SilhouetteOption,
-                                ThreadsOption, refuse_missing, setting_overrides, within)
-
-PREVIEW_COLOURS = ("normals", "data_distance", "off_span", "observed")
+                                ThreadsOption, check_preview, refuse_missing, setting_overrides, within)
 
 
 def render(
@@ -78,8 +76,7 @@ def render(
     camera's world units (docs/formats.md).
     """
     out = out or Path(f"{normal_map_path.stem}_fit.ply")
-    if preview_colour not in PREVIEW_COLOURS:
-        raise StatfitError(f"unknown --preview-colour {preview_colour!r}; choose one of {', '.join(PREVIEW_COLOURS)}")
+    check_preview(preview, preview_colour)
     if params is not None:
         params_suffix(params)
     for target in (out, log, preview, params):

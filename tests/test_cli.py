@@ -311,7 +311,7 @@ def test_the_cli_starts_without_importing_matplotlib():
     import subprocess
     import sys
 
-    code = ("import sys, statfit_cli.main, statfit.batch.report, statfit.render.preview; "
+    code = ("import sys, statfit_cli.main, statfit.batch.report, statfit.render.preview, statfit.registration.preview; "
             "print('matplotlib' in sys.modules)")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0 and done.stdout.strip() == "False", (done.stdout, done.stderr[-2000:])

@@ -19,7 +19,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
 from statfit.batch.manifest import MANIFEST_NAME, latest_fits, read_rows
 from statfit.errors import StatfitError
@@ -31,11 +30,8 @@ from statfit.io.normalmap import camera_for_map, read_normal_map
 from statfit.model.importers.cache import open_model
 from statfit.model.statmodel import StatModel
 from statfit.render.job import camera_space_normals
-from statfit.render.preview import angular_error, normals_to_rgb
-from statfit.renderer.images import render_target
-from statfit.renderer.raster import rasterize
-from statfit.renderer.shading import normal_image
-from statfit.structures.camera import Camera
+from statfit.render.preview import angular_error
+from statfit.renderer.images import cropped, front_camera, mesh_with_points, normals_to_rgb, render_target
 
 COLUMNS = ("input", "output", "status", "reason", "outlier", "error_mean", "error_median", "error_unit",
            "landmark_error", "pose_ambiguous", "pose_score", "pose_runner_up", "hair_share", "fit_residual",
@@ -43,8 +39,6 @@ COLUMNS = ("input", "output", "status", "reason", "outlier", "error_mean", "erro
 THUMBNAIL = 160             # pixels: the register view's side, the render pair's height
 MAX_POINTS = 50_000         # a larger scan's error is measured on this many of its points (a fixed draw)
 OUTLIER_MADS = 3.0          # mean error above median + this many MADs (of the batch's rows) is an outlier
-FAR_SHARE = 0.05            # scan points this share of the fit's RMS radius off its surface are drawn red
-FOV_DEG, FILL = 30.0, 0.9
 PENDING = "not fitted yet: rerun the batch command to fit it"
 
 
@@ -190,51 +184,8 @@ def measure_register(row: ReportRow, vertices: np.ndarray, faces: np.ndarray, mo
     distance = surface_distance(points, vertices, faces)
     row.error_mean, row.error_median, row.error_unit = float(distance.mean()), float(np.median(distance)), "scan units"
     turn = np.eye(3) if model_to_scan is None else np.asarray(model_to_scan, dtype=np.float64)[:3, :3]
-    row.thumbnail = image_bytes(fit_over_points(vertices, faces, points, distance, turn), ".png")
-
-
-def front_camera(vertices: np.ndarray, turn: np.ndarray, size: int = THUMBNAIL) -> Camera:
-    """A square camera facing the model's front (+z, +y up in the model's frame) in the frame that
-    ``turn`` (3, 3: model → data, scale included) puts the model in, framing ``vertices`` (N, 3)."""
-    toward, up = turn[:, 2] / np.linalg.norm(turn[:, 2]), turn[:, 1] / np.linalg.norm(turn[:, 1])
-    centre = vertices.mean(axis=0)
-    radius = float(np.linalg.norm(vertices - centre, axis=1).max())
-    distance = radius / np.sin(np.radians(FOV_DEG) / 2 * FILL)
-    return Camera.look_at(centre + distance * toward, centre, up, FOV_DEG, size, size)
-
-
-def fit_over_points(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, distance: np.ndarray,
-                    turn: np.ndarray) -> np.ndarray:
-    """RGB (S, S, 3) in [0, 1]: the fit (N, 3)/(F, 3) shaded by a headlight on white, with the points
-    (M, 3) it does not hide drawn over it, green on its surface to red ``FAR_SHARE`` of its radius
-    off (``distance`` (M,))."""
-    camera = front_camera(vertices, turn)
-    corners = torch.as_tensor(vertices, dtype=torch.float64)
-    fragments = rasterize(corners, torch.as_tensor(faces, dtype=torch.long), camera)
-    normals = normal_image(corners, torch.as_tensor(faces, dtype=torch.long), fragments, camera).numpy()
-    covered = fragments.triangle.numpy() >= 0
-    shade = 0.25 + 0.65 * np.clip(-normals[..., 2], 0.0, 1.0)
-    image = np.where(covered[..., None], shade[..., None] * np.array([0.85, 0.87, 0.95]), 1.0)
-    pixels, depth = (value.numpy() for value in camera.project(torch.as_tensor(points, dtype=torch.float64)))
-    column, line = np.floor(pixels[:, 0]).astype(np.int64), np.floor(pixels[:, 1]).astype(np.int64)
-    inside = (column >= 0) & (column < camera.width) & (line >= 0) & (line < camera.height) & (depth > 0)
-    surface = np.full(len(points), np.inf)
-    surface[inside] = fragments.depth.numpy()[line[inside], column[inside]]
-    radius = float(np.sqrt(((vertices - vertices.mean(axis=0)) ** 2).sum(axis=1).mean()))
-    shown = np.flatnonzero(inside & (depth <= surface + 0.02 * radius))
-    shown = shown[np.argsort(-depth[shown])]        # nearer points drawn last, over farther ones
-    far = np.clip(distance[shown] / (FAR_SHARE * radius), 0.0, 1.0)[:, None]
-    image[line[shown], column[shown]] = (1.0 - far) * np.array([0.1, 0.7, 0.2]) + far * np.array([0.9, 0.1, 0.1])
-    covered[line[shown], column[shown]] = True
-    return cropped(image, covered)
-
-
-def cropped(image: np.ndarray, keep: np.ndarray, margin: int = 4) -> np.ndarray:
-    """``image`` (H, W, C) cut to the bounding box of ``keep`` (H, W) bool, plus ``margin`` pixels."""
-    if not keep.any():
-        return image
-    rows, columns = np.flatnonzero(keep.any(axis=1)), np.flatnonzero(keep.any(axis=0))
-    return image[max(rows[0] - margin, 0):rows[-1] + margin + 1, max(columns[0] - margin, 0):columns[-1] + margin + 1]
+    image, shown = mesh_with_points(vertices, faces, points, distance, front_camera(vertices, turn, THUMBNAIL))
+    row.thumbnail = image_bytes(cropped(image, shown), ".png")
 
 
 def measure_render(row: ReportRow, batch: Batch, vertices: np.ndarray, faces: np.ndarray) -> None:

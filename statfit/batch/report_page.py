@@ -8,7 +8,8 @@ import html
 from collections.abc import Callable
 from typing import Any
 
-from statfit.batch.report import OUTLIER_MADS, FAR_SHARE, Batch, ReportRow
+from statfit.batch.report import OUTLIER_MADS, Batch, ReportRow
+from statfit.renderer.images import FAR_SHARE
 
 # Each <img> is marked data-loaded="1" once it has decoded to a picture, "0" if it failed.
 MARK_IMAGES_JS = """
