@@ -37,7 +37,8 @@ def _target(model, rng: np.random.Generator, sigma: float, delta: Path | None, d
 
 @app.command("scan")
 def scan(
-    out: Path = typer.Option(..., "--out", "-o", help="Scan point cloud (PLY).", show_default=False),
+    out: Path = typer.Option(..., "--out", "-o", help="The scan: a point cloud, .ply or text rows x y z (.xyz, .asc, "
+                             ".csv, .txt); with --realistic a mesh, .ply or .obj.", show_default=False),
     gt: Path = GtOption,
     model_path: Path = ModelOption,
     seed: int = SeedOption,
@@ -74,7 +75,7 @@ def scan(
         statfit synth scan --model model.npz --seed 3 --out scan.ply --gt gt.ply
         statfit synth scan --model model.npz --seed 3 --realistic --units mm --out scan.ply --gt gt.ply
     """
-    from statfit.io.files import check_writable, mesh_format, write_atomic
+    from statfit.io.files import check_writable, mesh_format, points_format, write_atomic
 
     if points < 10:
         raise StatfitError("--points must be at least 10")
@@ -97,6 +98,7 @@ def scan(
             check_writable(target)
     if gt is not None:
         mesh_format(gt)
+    mesh_format(out) if realistic else points_format(out)
     check_delta_options(delta, delta_name)
     refuse_missing({"delta file": delta}, model_path)
 
@@ -113,11 +115,11 @@ def scan(
     rng = np.random.default_rng(seed)
     shape = _target(model, rng, sigma, delta, delta_name, delta_weight)
     if not realistic:
-        scan_bytes = points_bytes(scan_from_view(shape, model.faces, rng, points, yaw, pitch, noise, outliers))
+        scan_bytes = points_bytes(scan_from_view(shape, model.faces, rng, points, yaw, pitch, noise, outliers), out)
     else:
         made = realistic_scan(shape, model.faces, rng, points, yaw, pitch, clutter, holes, noise, units, pose,
                               parts)
-        scan_bytes, shape = mesh_bytes(made.vertices, made.faces, "ply"), made.truth
+        scan_bytes, shape = mesh_bytes(made.vertices, made.faces, mesh_format(out)), made.truth
     write_atomic(out, scan_bytes)
     if gt is not None:
         write_atomic(gt, mesh_bytes(shape, model.faces, mesh_format(gt)))

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from statfit.io.mesh import read_points
+from statfit.io.mesh import read_mesh, read_points
 from test_cli import run
 
 FAST = ["--iterations", "30"]
@@ -77,3 +77,26 @@ def test_a_bad_text_cloud_is_refused_in_one_line(tmp_path, capsys, name, data, m
     code, _, err = run(["register", str(tmp_path / name), "--out", str(out), *FAST], capsys)
     assert code == 2 and message in err and len(err.strip().splitlines()) == 1, err
     assert not out.exists()
+
+
+def test_synth_writes_a_scan_in_the_format_its_name_asks_for(tmp_path, capsys):
+    """A point-cloud scan as text reads back to the PLY's points; a realistic scan (a mesh) as OBJ
+    to the PLY's mesh; a suffix of the other kind is refused before any work."""
+    names = ("scan.ply", "scan.xyz", "scan.csv", "real.ply", "real.obj")
+    for name in names:
+        realistic = ["--realistic"] if name.startswith("real") else []
+        code, _, err = run(["synth", "scan", "--seed", "3", *realistic, "--out", str(tmp_path / name)], capsys)
+        assert code == 0, err
+    ply = read_points(tmp_path / "scan.ply")
+    for name in ("scan.xyz", "scan.csv"):
+        np.testing.assert_array_equal(read_points(tmp_path / name), ply, err_msg=name)
+    assert (tmp_path / "scan.csv").read_text().startswith("x,y,z\n")
+    (vertices, faces), (obj_vertices, obj_faces) = (read_mesh(tmp_path / name) for name in ("real.ply", "real.obj"))
+    np.testing.assert_array_equal(obj_faces, faces)
+    np.testing.assert_allclose(obj_vertices, vertices, atol=1e-6 * np.abs(vertices).max())
+    for arguments, message in ((["--out", "x.obj"], "x.obj: point clouds are written as .ply or as text"),
+                               (["--realistic", "--out", "x.xyz"], "x.xyz: meshes are written as .ply or .obj")):
+        code, _, err = run(["synth", "scan", *[str(tmp_path / a) if a.startswith("x.") else a for a in arguments]],
+                           capsys)
+        assert code == 2 and message in err and len(err.strip().splitlines()) == 1, err
+    assert sorted(path.name for path in tmp_path.iterdir()) == sorted(names)

@@ -13,6 +13,8 @@ from pathlib import Path
 from statfit.errors import StatfitError
 
 PARAMS_SUFFIXES = (".json", ".npz")
+# Text point clouds (statfit.io.point_text), read and written.
+POINT_TEXT_SUFFIXES = (".xyz", ".asc", ".csv", ".txt")
 
 
 def existing_file(path: str | Path, what: str) -> Path:
@@ -77,6 +79,18 @@ def mesh_format(target: str | Path) -> str:
     if suffix not in ("", ".ply", ".obj"):
         raise StatfitError(f"{target}: meshes are written as .ply or .obj, not {suffix}")
     return "obj" if suffix == ".obj" else "ply"
+
+
+def points_format(target: str | Path) -> str:
+    """``text`` for a text point cloud's path (:data:`POINT_TEXT_SUFFIXES`), else ``ply`` (a .ply
+    path, one without a suffix, stdout); a path with another suffix is refused."""
+    suffix = "" if str(target) == "-" else Path(str(target)).suffix.lower()
+    if suffix in POINT_TEXT_SUFFIXES:
+        return "text"
+    if suffix not in ("", ".ply"):
+        raise StatfitError(f"{target}: point clouds are written as .ply or as text ({', '.join(POINT_TEXT_SUFFIXES)}), "
+                           f"not {suffix}")
+    return "ply"
 
 
 def check_writable(target: str | Path) -> None:

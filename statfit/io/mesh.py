@@ -10,8 +10,8 @@ import numpy as np
 import trimesh
 
 from statfit.errors import StatfitError
-from statfit.io.files import existing_file
-from statfit.io.point_text import POINT_TEXT_SUFFIXES, SNIFF_BYTES, read_point_text
+from statfit.io.files import POINT_TEXT_SUFFIXES, existing_file, points_format
+from statfit.io.point_text import SNIFF_BYTES, point_text_bytes, read_point_text
 from statfit.structures.scan import Scan
 
 MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off")
@@ -155,6 +155,10 @@ def read_vertex_fields(source: str | Path) -> dict[str, np.ndarray]:
             if name not in ("x", "y", "z") and raw[name].ndim == 1}
 
 
-def points_bytes(points: np.ndarray) -> bytes:
-    """A point cloud encoded as binary PLY."""
+def points_bytes(points: np.ndarray, target: str | Path = "-") -> bytes:
+    """A point cloud (M, 3) encoded for the path ``target``: binary PLY, or text rows for a text
+    point cloud's suffix (:func:`statfit.io.files.points_format`); either way the points as float32,
+    so that both files read back to the same points."""
+    if points_format(target) == "text":
+        return point_text_bytes(np.asarray(points, dtype=np.float32), Path(str(target)).suffix.lower())
     return trimesh.PointCloud(points).export(file_type="ply")

@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 
 from statfit.errors import StatfitError
+from statfit.io.files import POINT_TEXT_SUFFIXES
 
-POINT_TEXT_SUFFIXES = (".xyz", ".asc", ".csv", ".txt")
 COMMENTS = ("#", "//")
 # Where the first point's row must start: comments, blank rows and one header row come first.
 SNIFF_BYTES = 1 << 16
@@ -31,6 +31,17 @@ def read_point_text(path: Path, head: bytes) -> np.ndarray:
     except ValueError as error:
         raise StatfitError(f"{path}: {_first_bad_row(path, skip, delimiter) or error}") from None
     return points
+
+
+def point_text_bytes(points: np.ndarray, suffix: str) -> bytes:
+    """Points (M, 3) as text rows ``x y z`` (``.csv``: ``x,y,z`` under a header row), each number
+    with the 17 significant digits that read back to the same float64."""
+    if suffix not in POINT_TEXT_SUFFIXES:
+        raise StatfitError(f"a text point cloud is {', '.join(POINT_TEXT_SUFFIXES)}, not {suffix}")
+    comma = suffix == ".csv"
+    rows = np.char.mod("%.17g", np.asarray(points, dtype=np.float64))
+    lines = [(",".join(row) if comma else " ".join(row)) for row in rows.tolist()]
+    return (("x,y,z\n" if comma else "") + "\n".join(lines) + "\n").encode()
 
 
 def _layout(head: bytes, path: Path) -> tuple[int, str | None]:

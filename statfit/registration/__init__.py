@@ -7,4 +7,5 @@
 - :mod:`statfit.registration.prealign`: the scan checked and placed (pose search, landmarks, ICP).
 - :mod:`statfit.registration.pose`: the automatic pose, scale and units (no landmarks needed).
 - :mod:`statfit.registration.hair`: which scan points are hair or clutter, not the head.
+- :mod:`statfit.registration.preview`: the preview picture (the scan on the fit; where the fit guessed).
 """
