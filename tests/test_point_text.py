@@ -32,6 +32,8 @@ def _write_layouts(folder, points: np.ndarray) -> dict[str, bytes]:
     }
     encoded = {name: text.encode() for name, text in layouts.items()}
     encoded["bom.xyz"] = b"\xef\xbb\xbf" + encoded["comments.xyz"].split(b"\n", 2)[2]
+    encoded["windows.xyz"] = encoded["comments.xyz"].replace(b"\n", b"\r\n")
+    encoded["old_mac.xyz"] = encoded["comments.xyz"].replace(b"\n", b"\r")
     for name, data in encoded.items():
         (folder / name).write_bytes(data)
     return encoded
