@@ -15,7 +15,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, Ti
 
 from statfit.errors import StatfitError
 from statfit.core.method_help import LANDMARK_WEIGHT, PCA_LANDMARK_WEIGHT, SUMMARIES
-from statfit.io.files import existing_file, existing_folder
+from statfit.io.files import existing_file, existing_folder, output_suffix
 
 stderr = Console(stderr=True)
 
@@ -227,12 +227,12 @@ def clutter_choice(value: str) -> bool | None:
 PREVIEW_COLOURS = ("normals", "data_distance", "off_span", "observed")
 
 
-def check_preview(path: Path | None, colour: str) -> None:
-    """A ``--preview`` PNG path and its ``--preview-colour``, refused before any work."""
-    if colour not in PREVIEW_COLOURS:
+def check_preview(path: Path | None, colour: str | None = None) -> None:
+    """A ``--preview`` path (a PNG) and its ``--preview-colour``, refused before any work."""
+    if colour is not None and colour not in PREVIEW_COLOURS:
         raise StatfitError(f"unknown --preview-colour {colour!r}; choose one of {', '.join(PREVIEW_COLOURS)}")
-    if path is not None and Path(path).suffix.lower() != ".png":
-        raise StatfitError(f"--preview {path}: a preview is a PNG image; name it .png")
+    if path is not None:
+        output_suffix(path, (".png",), "a preview")
 
 
 InputPath = str | Path | None

@@ -6,7 +6,7 @@ from pathlib import Path
 import typer
 
 from statfit.io.files import check_writable
-from statfit_cli.common import DeviceOption, JsonOption, LogOption, QuietOption, refuse_missing
+from statfit_cli.common import DeviceOption, JsonOption, LogOption, QuietOption, check_preview, refuse_missing
 
 
 def inpaint(
@@ -58,6 +58,7 @@ def inpaint(
     method = method or ("hybrid" if model_path is not None else "laplacian")
     out = out or Path(f"{image_path.stem}_filled.png")
     image_suffix(out)
+    check_preview(preview)
     for target in (out, log, preview):
         if target is not None:
             check_writable(target)

@@ -31,8 +31,9 @@ def _explained(cumulative: np.ndarray, with_last: bool) -> dict[str, float]:
 
 
 def _check_output(out: Path, *inputs: Path) -> None:
-    from statfit.io.files import check_writable
+    from statfit.io.files import check_writable, output_suffix
 
+    output_suffix(out, (".npz",), "a model")
     check_writable(out)
     if any(out.resolve() == p.resolve() for p in inputs):
         raise StatfitError(f"the output {out} would overwrite an input; choose another path")

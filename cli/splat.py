@@ -11,14 +11,14 @@ import numpy as np
 import typer
 
 from statfit.errors import StatfitError
-from statfit.io.files import check_writable, existing_file, mesh_format, params_suffix
+from statfit.io.files import check_writable, existing_file, mesh_format, output_suffix, params_suffix
 from statfit.objectives.weights import MASK_WEIGHT
 if TYPE_CHECKING:
     from statfit.structures.camera import Camera
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
                                 LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
                                 ParamsOption, PowerOption, PresetOption, QuietOption, SeedOption, ThreadsOption,
-                                refuse_missing, setting_overrides, within)
+                                check_preview, refuse_missing, setting_overrides, within)
 
 MAX_CAMERA_BYTES = 16 << 20
 
@@ -69,6 +69,9 @@ def splat(
     """
     if params is not None:
         params_suffix(params)
+    check_preview(preview)
+    if splats_out is not None:
+        output_suffix(splats_out, (".ply",), "a splat file")
     for target in (out, splats_out, preview, log, params):
         if target is not None:
             check_writable(target)

@@ -154,9 +154,10 @@ def normals(
         statfit synth normals --model model.npz --seed 3 --yaw 20 --out normals.exr --camera-out camera.json --gt gt.ply
         statfit synth normals --model body.npz --shape person.ply --yaw 30 --size 768 --out body.exr --camera-out cam.json
     """
-    from statfit.io.files import check_writable, mesh_format, write_atomic
+    from statfit.io.files import check_writable, mesh_format, output_suffix, write_atomic
 
     check_delta_options(delta, delta_name)
+    output_suffix(out, (".exr",), "a normal map")
     if shape_path is not None and delta is not None:
         raise StatfitError("--shape and --delta do not go together: add the delta to the mesh itself")
     for target in (out, camera_out, gt):

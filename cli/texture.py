@@ -77,7 +77,7 @@ def build_texture(
         statfit model build-texture textures/*.png -o tex.npz --k 200 --size 256 --jitter 9
     """
     from statfit.io.image import read_image
-    from statfit.io.files import check_writable
+    from statfit.io.files import check_writable, output_suffix
     from statfit.texture.model import build_texture_model
 
     if pca not in PCA_KINDS:
@@ -85,6 +85,7 @@ def build_texture(
     if k < 1:
         raise StatfitError("--k must be at least 1")
     shape = parse_size(size) if size is not None else None
+    output_suffix(out, (".npz",), "a texture model")
     check_writable(out)
     files = image_files(inputs)
     if shape is None:

@@ -61,7 +61,7 @@ def test_points_on_the_mesh_are_green_and_points_off_it_red():
 
 
 @pytest.mark.parametrize("arguments, message", [
-    (["--preview", "fit.jpg"], "--preview fit.jpg: a preview is a PNG image; name it .png"),
+    (["--preview", "fit.jpg"], "fit.jpg: a preview is written as .png, not .jpg"),
     (["--preview", "fit.png", "--preview-colour", "depth"], "unknown --preview-colour 'depth'"),
 ])
 @pytest.mark.parametrize("command", ["register", "render"])

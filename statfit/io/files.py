@@ -118,6 +118,15 @@ def check_writable(target: str | Path) -> None:
         raise StatfitError(f"cannot write {str(path)[:200]}: {exc.strerror}") from None
 
 
+def output_suffix(target: str | Path, suffixes: tuple[str, ...], what: str) -> None:
+    """Refuse, before any work, an output path whose suffix is none of ``suffixes`` (its bytes
+    would open nowhere under that name); ``what`` names the file ("a model")."""
+    suffix = Path(str(target)).suffix.lower()
+    if suffix not in suffixes:
+        raise StatfitError(f"{target}: {what} is written as {' or '.join(suffixes)}, not "
+                           f"{suffix or 'a name without a suffix'}")
+
+
 def params_suffix(path: str | Path) -> str:
     """A params file's suffix (statfit.model.params_file): ``.json`` or ``.npz``; anything else refused
     before any work."""
