@@ -1,6 +1,8 @@
 """Normal-map EXR and camera JSON: round trips and bad input."""
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import OpenEXR
 import pytest
@@ -117,3 +119,60 @@ def test_camera_of_another_size_is_refused(tmp_path, normal_map):
     check_camera_fits(Camera.look_at([0, 0, 50], [0, 0, 0], [0, 1, 0], 30.0, 40, 30), loaded, "camera.json")
     with pytest.raises(StatfitError, match="64×64 image but the normal map is 40×30"):
         check_camera_fits(Camera.look_at([0, 0, 50], [0, 0, 0], [0, 1, 0], 30.0, 64, 64), loaded, "camera.json")
+
+
+def _png(path, normals: np.ndarray, mask: np.ndarray, background: int, alpha: bool):
+    """``normals`` (H, W, 3) encoded as other tools save them, (n + 1) / 2 in 8 bits (Pillow), the
+    background ``background`` grey, with the mask as alpha or without one."""
+    from PIL import Image
+
+    encoded = np.where(mask[..., None], np.round((normals + 1.0) / 2.0 * 255.0), background).astype(np.uint8)
+    if alpha:
+        encoded = np.concatenate([encoded, (mask * 255).astype(np.uint8)[..., None]], axis=-1)
+    Image.fromarray(encoded, "RGBA" if alpha else "RGB").save(path)
+    return path
+
+
+@pytest.mark.parametrize("background, alpha", [(0, False), (255, False), (128, False), (0, True), (200, True)])
+def test_a_png_normal_map_reads_as_the_normals_it_was_encoded_from(tmp_path, normal_map, background, alpha):
+    """Black, white and mid-grey backgrounds decode far from unit length: the foreground is found
+    without an alpha channel too; 8-bit rounding leaves each normal within half a degree."""
+    normals, mask = normal_map
+    loaded = read_normal_map(_png(tmp_path / "n.png", normals, mask, background, alpha))
+    np.testing.assert_array_equal(loaded.mask, mask)
+    angles = np.degrees(np.arccos(np.clip((loaded.normals * normals).sum(-1)[mask], -1.0, 1.0)))
+    assert angles.max() < 0.5, angles.max()
+    assert loaded.camera is None
+
+
+def test_a_png_normal_map_fits_as_its_exr_does(tmp_path, capsys):
+    from test_cli import run
+
+    exr, camera, gt = tmp_path / "n.exr", tmp_path / "cam.json", tmp_path / "gt.ply"
+    assert run(["synth", "normals", "--seed", "3", "--size", "96", "--out", str(exr), "--camera-out", str(camera),
+                "--gt", str(gt)], capsys)[0] == 0
+    exact = read_normal_map(exr)
+    png = _png(tmp_path / "n.png", exact.normals, exact.mask, 0, False)
+    errors = {}
+    for source in (exr, png):
+        fit = tmp_path / f"{source.suffix[1:]}_fit.ply"
+        code, _, err = run(["render", str(source), "--camera", str(camera), "--out", str(fit), "--iterations", "150",
+                            "-q"], capsys)
+        assert code == 0, err
+        code, out, _ = run(["eval", str(fit), str(gt), "--json"], capsys)
+        errors[source.suffix] = json.loads(out)["all"]["mean"]
+    assert errors[".png"] < 1.15 * errors[".exr"], errors
+    code, _, err = run(["render", str(png), "--out", str(tmp_path / "x.ply")], capsys)
+    assert code == 2 and "carries no camera in its header; pass --camera" in err
+
+
+@pytest.mark.parametrize("image, message", [
+    (np.full((8, 8), 128, np.uint8), "a PNG normal map is RGB or RGBA, (n + 1) / 2 per channel; this one is grey"),
+    (np.zeros((8, 8, 3), np.uint8), "the mask has no foreground pixel"),
+])
+def test_a_png_that_is_no_normal_map_is_refused(tmp_path, image, message):
+    from PIL import Image
+
+    Image.fromarray(image).save(tmp_path / "n.png")
+    with pytest.raises(StatfitError, match=message.replace("(", r"\(").replace(")", r"\)").replace("+", r"\+")):
+        read_normal_map(tmp_path / "n.png")

@@ -1,8 +1,15 @@
-"""Normal maps (OpenEXR) and cameras (JSON, or an EXR header) in and out.
+"""Normal maps (OpenEXR, or PNG as other tools write them) and cameras (JSON, or an EXR header) in
+and out.
 
 EXR channels R, G, B hold a unit normal per pixel and A the coverage mask (1 foreground, 0
 background); half or float. Without A, pixels with a zero-length normal are background. A camera
 may travel in the header as the standard ``worldToCamera`` attribute (4×4) plus a ``K`` (3×3).
+
+A PNG (8-bit, or 16-bit as Pillow reads it) holds (n + 1) / 2 per channel, the way normal
+estimators and bakers save normal maps; a pixel is foreground where its alpha (if any) is over
+half and its decoded normal is within ``PNG_UNIT_TOLERANCE`` of unit length: black and white
+backgrounds decode to length √3, mid-grey to 0, and 8-bit rounding moves a true normal's length by
+less than 0.02. A PNG carries no camera (``--camera``).
 """
 from __future__ import annotations
 
@@ -12,15 +19,20 @@ from pathlib import Path
 import numpy as np
 
 from statfit.errors import StatfitError
-from statfit.io.exr import read_exr, write_exr
+from statfit.io.exr import is_exr, read_exr, write_exr
 from statfit.io.files import existing_file, write_atomic
+from statfit.io.image import read_image
 from statfit.structures.camera import Camera
 from statfit.structures.normal_map import NormalMap
 
+PNG_UNIT_TOLERANCE = 0.1
+
 
 def read_normal_map(path: str | Path) -> NormalMap:
-    """Read and validate a normal-map EXR."""
-    path = Path(path)
+    """Read and validate a normal map: an EXR, or a PNG named ``.png`` (the module's docstring)."""
+    path = existing_file(path, "normal map")
+    if path.suffix.lower() == ".png" and not is_exr(path):
+        return _read_png(path)
     header, channels = read_exr(path, "normal map")
     missing = [c for c in "RGB" if c not in channels]
     if missing:
@@ -29,6 +41,19 @@ def read_normal_map(path: str | Path) -> NormalMap:
     length = np.linalg.norm(normals, axis=-1)
     mask = channels["A"] > 0.5 if "A" in channels else length > 0
     return NormalMap(*_validated(normals, length, mask, path), camera=_header_camera(header, normals.shape))
+
+
+def _read_png(path: Path) -> NormalMap:
+    """A PNG normal map: (n + 1) / 2 per channel, coverage from alpha and the decoded length."""
+    image = read_image(path)
+    if image.shape[-1] < 3:
+        raise StatfitError(f"{path}: a PNG normal map is RGB or RGBA, (n + 1) / 2 per channel; this one is grey")
+    normals = image[..., :3] * 2.0 - 1.0
+    length = np.linalg.norm(normals, axis=-1)
+    mask = np.abs(length - 1.0) < PNG_UNIT_TOLERANCE
+    if image.shape[-1] == 4:
+        mask &= image[..., 3] > 0.5
+    return NormalMap(*_validated(normals, length, mask, path))
 
 
 def apply_mask(normal_map: NormalMap, mask: np.ndarray, source: str) -> NormalMap:
