@@ -72,6 +72,7 @@ def render(
         \b
         statfit render normals.exr --camera camera.json --model model.npz --out fit.ply --preview fit.png
         statfit render normals.exr --params fit.params.json --preview fit.png --preview-colour data_distance
+        statfit render estimated.png --camera camera.json --normal-space camera --normal-convention opengl
 
     The PLY's vertices carry data_distance (to the nearest covered pixel's point on the fit),
     observed (0/1: seen in a covered pixel) and off_span (distance from the model's span), in the
