@@ -98,7 +98,10 @@ def scan(
             check_writable(target)
     if gt is not None:
         mesh_format(gt)
-    mesh_format(out) if realistic else points_format(out)
+    if realistic:
+        mesh_format(out)
+    else:
+        points_format(out)
     check_delta_options(delta, delta_name)
     refuse_missing({"delta file": delta}, model_path)
 
