@@ -332,6 +332,48 @@ def test_batch_render_fits_each_map_like_render(tmp_path):
     assert (out / "m2.ply").read_bytes() == one.read_bytes()
 
 
+def test_batch_render_reads_each_maps_own_camera(tmp_path):
+    """PNG normal maps carry no camera: `--camera '{stem}.json'` gives each map its own, beside it.
+    Byte for byte as `render MAP --camera ITS_CAMERA`; a map without its camera fails alone; a
+    changed camera fits that map again, and only it; the report measures each against its own."""
+    from PIL import Image
+
+    from statfit.io.normalmap import read_normal_map
+
+    maps = tmp_path / "maps"
+    maps.mkdir()
+    for seed in (1, 2, 3):
+        exr = maps / f"m{seed}.exr"
+        assert run_cli(["synth", "normals", "--seed", str(seed), "--yaw", str(10 * seed), "--size", "64", "--out",
+                        str(exr), "--camera-out", str(maps / f"m{seed}.json")])[0] == 0
+        normal_map = read_normal_map(exr)
+        encoded = np.round((normal_map.normals + 1.0) / 2.0 * 255.0) * normal_map.mask[..., None]
+        Image.fromarray(encoded.astype(np.uint8), "RGB").save(maps / f"m{seed}.png")
+        exr.unlink()
+    (maps / "m3.json").unlink()
+    out = tmp_path / "fits"
+    command = ["batch", "render", str(maps / "*.png"), "--camera", "{stem}.json", "--out-dir", str(out), "--workers",
+               "1", "--iterations", "20", "--together", "1", "-q"]
+    code, err = run_cli(command)
+    assert code == 1, err
+    rows = {row["output"]: row for row in fit_rows(out)}
+    assert {name: row["status"] for name, row in rows.items()} == {"m1.ply": "done", "m2.ply": "done",
+                                                                   "m3.ply": "failed"}
+    assert f"no camera file {maps / 'm3.json'}" in rows["m3.ply"]["error"]
+    one = tmp_path / "one.ply"
+    assert run_cli(["render", str(maps / "m2.png"), "--camera", str(maps / "m2.json"), "--out", str(one),
+                    "--iterations", "20", "-q"])[0] == 0
+    assert (out / "m2.ply").read_bytes() == one.read_bytes()
+    camera = json.loads((maps / "m1.json").read_text())
+    camera["K"][0][2] += 0.5                                   # the principal point half a pixel over
+    (maps / "m1.json").write_text(json.dumps(camera))
+    assert run_cli(command)[0] == 1
+    assert [row["output"] for row in fit_rows(out)][3:] == ["m3.ply", "m1.ply"]     # m2 skipped
+    assert run_cli(["batch", "report", str(out)])[0] == 0
+    table = (out / "report.csv").read_text()
+    assert table.count(",done,") == 2 and "degrees" in table
+
+
 def test_a_pool_of_n_workers_runs_n_processes(tmp_path):
     for index in range(8):
         (tmp_path / f"slow{index}.ply").write_bytes(b"x")

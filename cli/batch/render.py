@@ -21,8 +21,11 @@ from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, KOpt
 def batch_render(
     inputs: list[str] = InputsArgument,
     out_dir: Path = OutDirOption,
-    camera_path: Path = typer.Option(None, "--camera", "-c", help="One camera JSON for every map. Default: each "
-                                     "map's own camera, from its EXR header.", show_default=False),
+    camera_path: str = typer.Option(None, "--camera", "-c", help="One camera JSON for every map, or each map's own "
+                                    "named by a template: {stem} is the map's name without its extension, and a "
+                                    "relative path lies in the map's folder ('{stem}.json': maps/a.png uses "
+                                    "maps/a.json). Default: each map's own camera, from its EXR header.",
+                                    show_default=False),
     camera_from_header: bool = typer.Option(False, "--camera-from-header", help="Each map's camera from its EXR "
                                             "header (the default; say it to make a script explicit)."),
     model_path: Path = ModelOption,
@@ -70,9 +73,13 @@ def batch_render(
         statfit batch render 'maps/*.exr' --camera-from-header --model model.npz --out-dir fits/ --workers 2
         statfit batch render 'maps/*.exr' --out-dir fits/ --params    # fits/<map>.params.json too
         statfit batch render 'maps/*.exr' --out-dir fits/ --device cuda --workers 4   # many maps at once a worker
+        statfit batch render 'maps/*.png' --camera '{stem}.json' --out-dir fits/   # each map's camera beside it
     """
+    from statfit.batch.plan import STEM
+
     items = planned_inputs(inputs, out_dir)
-    refuse_missing({"camera file": camera_path}, model_path)
+    per_map = camera_path is not None and STEM in camera_path
+    refuse_missing({"camera file": None if per_map else camera_path}, model_path)
 
     # The library loads once the paths are known good: a mistyped name is refused at once.
     from statfit.batch.fits import FitJob
@@ -93,9 +100,11 @@ def batch_render(
         if value not in allowed:
             raise StatfitError(f"unknown {name} {value!r}; choose one of {', '.join(allowed)}")
     camera = None
-    if camera_path is not None:
+    if per_map:
+        camera = camera_path                # each map's own, read with the map; its bytes in the map's digest
+    elif camera_path is not None:
         read_camera(camera_path)  # checked once, here
-        camera = str(camera_path.resolve())
+        camera = str(Path(camera_path).resolve())
     model_file, digest, model = model_identity(model_path, k)
     sides = silhouette_sides(silhouette, model)       # checked before any folder is made
     if region is not None:

@@ -21,7 +21,7 @@ from statfit.render.job import reconstruct
 from statfit.render.many import reconstruct_many
 from statfit.renderer import Camera
 from statfit.structures.normal_map import NormalMap
-from statfit.batch.plan import companion_file
+from statfit.batch.plan import STEM, companion_file, map_camera_file
 from statfit.io.landmarks import read_landmarks
 from statfit.io.mesh import load_scan, mesh_bytes
 from statfit.io.normalmap import camera_for_map, read_normal_map
@@ -51,7 +51,9 @@ class FitJob:
     per fit (None: chosen from the problem, at most ``max_threads``); ``model_digest``: the model
     file's content hash, so a changed model redoes the batch; ``fallback``: register's
     (:class:`statfit.core.methods.Fallback`), None for none; ``landmarks``: register's template of each
-    scan's landmarks file (:func:`statfit.batch.plan.companion_file`), None for none."""
+    scan's landmarks file (:func:`statfit.batch.plan.companion_file`), None for none. A render job's
+    ``options["camera"]`` is one camera file for every map, a template of each map's own (with
+    ``{stem}``), or None (each map's header)."""
     command: str
     model: str | None
     k: int | None
@@ -65,6 +67,17 @@ class FitJob:
     fallback: Fallback | None = None
     together: int = 1
     landmarks: str | None = None
+
+    @property
+    def companion(self) -> tuple[str, str] | None:
+        """Each input's own companion file, whose bytes its fit depends on: (the template, what the
+        file holds) — register's landmarks, render's camera named with ``{stem}`` — or None."""
+        if self.landmarks:
+            return self.landmarks, "landmarks"
+        camera = self.options.get("camera")
+        if self.command == "render" and camera is not None and STEM in camera:
+            return camera, "camera"
+        return None
 
     def settings(self) -> dict[str, Any]:
         """Everything that decides an output, as plain JSON (the manifest's settings key)."""
@@ -159,7 +172,7 @@ def _read(job: FitJob, source: str) -> Scan | tuple[NormalMap, Camera]:
         return load_scan(source, job.options.get("seed", 0))
     if job.command == "render":
         normal_map = read_normal_map(source)
-        return normal_map, camera_for_map(normal_map, job.options.get("camera"), source)
+        return normal_map, camera_for_map(normal_map, map_camera_file(job.options.get("camera"), source), source)
     raise StatfitError(f"unknown batch command {job.command!r}; choose one of {', '.join(COMMANDS)}")
 
 

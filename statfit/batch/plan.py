@@ -85,6 +85,14 @@ def check_companion_template(template: str, option: str) -> None:
                            f"extension (e.g. '{STEM}.pts', beside each scan); got {template!r}")
 
 
+def map_camera_file(camera: str | None, source: str | Path) -> str | None:
+    """A render batch's ``camera`` option for the map ``source``: one file for every map, each map's
+    own (a template with ``{stem}``: :func:`companion_file`), or None (the map's header)."""
+    if camera is None or STEM not in camera:
+        return camera
+    return str(companion_file(Path(source), camera))
+
+
 def companion_file(source: Path, template: str) -> Path:
     """The file ``template`` names for the input ``source``: ``{stem}`` replaced by its name without
     its extension; relative to the input's folder unless absolute (``{stem}.pts``: beside it)."""

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from statfit.batch.manifest import MANIFEST_NAME, latest_fits, read_rows
+from statfit.batch.plan import map_camera_file
 from statfit.errors import StatfitError
 from statfit.geometry.metrics import surface_distance
 from statfit.io.image import image_bytes
@@ -193,7 +194,8 @@ def measure_render(row: ReportRow, batch: Batch, vertices: np.ndarray, faces: np
     pixels both cover, and the two normal maps side by side."""
     options = batch.settings.get("options") or {}
     normal_map = _read("input", read_normal_map, row.input)
-    camera = _read("camera", lambda source: camera_for_map(normal_map, options.get("camera"), source), row.input)
+    camera = _read("camera", lambda source: camera_for_map(normal_map, map_camera_file(options.get("camera"), source),
+                                                            source), row.input)
     target = camera_space_normals(normal_map, camera, options.get("normal_space", "world"),
                                   options.get("normal_convention", "opencv"))
     fitted, covered = render_target(vertices, faces, camera, space="camera")

@@ -80,22 +80,23 @@ class _Recorder:
             self.on_row(row)
 
 
-def plan_work(items: list[Item], out_dir: Path, key: str, force: bool, landmarks: str | None = None
+def plan_work(items: list[Item], out_dir: Path, key: str, force: bool, companion: tuple[str, str] | None = None
               ) -> tuple[list[tuple[Item, str | None]], list[tuple[Item, str]], int]:
     """(to fit with its digest, unreadable with the reason, number already done). With a
-    ``landmarks`` template (:func:`statfit.batch.plan.companion_file`), an input's digest covers its
-    landmarks file too, so a changed file is fitted again; an input without one is unreadable."""
+    ``companion`` (template, what it holds: :attr:`statfit.batch.fits.FitJob.companion`), an input's
+    digest covers its own such file too, so a changed file is fitted again; an input without one is
+    unreadable."""
     latest = latest_fits(read_rows(out_dir / MANIFEST_NAME))
     todo, unreadable, skipped = [], [], 0
     for item in items:
-        companion = companion_file(item.source, landmarks) if landmarks is not None else None
+        path = companion_file(item.source, companion[0]) if companion is not None else None
         try:
             digest = file_digest(item.source)
-            if companion is not None:
-                if not companion.is_file():
-                    unreadable.append((item, f"no landmarks file {companion} for {item.source}"))
+            if path is not None:
+                if not path.is_file():
+                    unreadable.append((item, f"no {companion[1]} file {path} for {item.source}"))
                     continue
-                digest = hashlib.sha256(f"{digest} {file_digest(companion)}".encode()).hexdigest()
+                digest = hashlib.sha256(f"{digest} {file_digest(path)}".encode()).hexdigest()
         except OSError as exc:
             unreadable.append((item, f"cannot read {exc.filename or item.source}: {exc.strerror}"))
             continue
@@ -123,7 +124,7 @@ def run_batch(items: list[Item], job: FitJob, out_dir: Path, engine: Engine, *, 
     with Manifest(out_dir / MANIFEST_NAME) as manifest:
         for stale in out_dir.rglob(".statfit-*.tmp"):  # a killed run's half-written output; ours alone (locked)
             stale.unlink(missing_ok=True)
-        todo, unreadable, report.skipped = plan_work(items, out_dir, key, force, job.landmarks)
+        todo, unreadable, report.skipped = plan_work(items, out_dir, key, force, job.companion)
         manifest.append(dict(event="run", started=_now(), key=key, settings=job.settings(),
                              inputs=[item.identity for item in items]))
         if on_start is not None:
