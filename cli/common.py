@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import os
 import sys
 import time
 import warnings
@@ -253,3 +254,26 @@ def refuse_missing(files: dict[str, InputPath | list[InputPath]], model: Path | 
     if model is not None and not Path(model).is_dir():
         existing_file(model, "model file")
 
+
+
+def refuse_overwrite(outputs: dict[str, InputPath], inputs: dict[str, InputPath | list[InputPath]]) -> None:
+    """Refuse, before any work, an output that names an input (the fit would change what it read)
+    or another output (one of the two would be lost): ``outputs`` maps each output's option to its
+    path, ``inputs`` what each input is to its path or paths; None and '-' are skipped. Paths are
+    compared as the files they name (links and relative paths resolved)."""
+    def same(a: InputPath, b: InputPath) -> bool:
+        first, second = Path(str(a)), Path(str(b))
+        if first.exists() and second.exists():
+            return os.path.samefile(first, second)
+        return first.resolve() == second.resolve()
+
+    named = [(option, path) for option, path in outputs.items() if path is not None and str(path) != "-"]
+    for index, (option, path) in enumerate(named):
+        for what, paths in inputs.items():
+            for source in paths if isinstance(paths, list) else [paths]:
+                if source is not None and str(source) != "-" and same(path, source):
+                    raise StatfitError(f"{option} {path} is the {what}: statfit never writes over its input; "
+                                       "choose another path")
+        for other, other_path in named[:index]:
+            if same(path, other_path):
+                raise StatfitError(f"{other} and {option} both name {path}; choose two paths")

@@ -6,7 +6,8 @@ from pathlib import Path
 import typer
 
 from statfit.io.files import check_writable
-from statfit_cli.common import DeviceOption, JsonOption, LogOption, QuietOption, check_preview, refuse_missing
+from statfit_cli.common import (DeviceOption, JsonOption, LogOption, QuietOption, check_preview, refuse_missing,
+                                refuse_overwrite)
 
 
 def inpaint(
@@ -63,6 +64,8 @@ def inpaint(
         if target is not None:
             check_writable(target)
     refuse_missing({"image": image_path, "mask": mask, "chart image": charts, "texture model file": model_path})
+    refuse_overwrite({"--out": out, "--log": log, "--preview": preview},
+                     {"image": image_path, "mask": mask, "chart image": charts, "texture model file": model_path})
 
     # The library loads once the paths are known good: a mistyped name is refused at once.
     from statfit.core.device import resolve_device

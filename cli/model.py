@@ -13,8 +13,8 @@ from rich.table import Table
 from statfit.errors import StatfitError
 if TYPE_CHECKING:
     from statfit.model.statmodel import StatModel
-from statfit_cli.common import (QuietOption, SeedOption, count_bar, printed_warnings, refuse_missing, seed_option,
-                                stage_line, within)
+from statfit_cli.common import (QuietOption, SeedOption, count_bar, printed_warnings, refuse_missing,
+                                refuse_overwrite, seed_option, stage_line, within)
 
 
 app = typer.Typer(help="Import, build, inspect and sample statistical models.", no_args_is_help=True)
@@ -237,6 +237,7 @@ def sample(
     check_writable(out)
     mesh_format(out)
     refuse_missing({"params file": params}, model_path)
+    refuse_overwrite({"--out": out}, {"params file": params, "model": model_path})
 
     # The library loads once the paths are known good: a mistyped name is refused at once.
     from statfit.io.mesh import mesh_bytes

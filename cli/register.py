@@ -11,7 +11,7 @@ from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, Fallbac
                                 KOption, LamOption, LandmarkWeightOption, LaplacianOption, LogOption, LrOption,
                                 MethodOption, ModeGainOption, ModelOption, ParamsOption, PowerOption, PresetOption,
                                 QuietOption, SeedOption, ThreadsOption, check_preview, clutter_choice, refuse_missing,
-                                setting_overrides, within)
+                                refuse_overwrite, setting_overrides, within)
 
 
 def register(
@@ -94,6 +94,8 @@ def register(
             check_writable(path)
     mesh_format(target)
     refuse_missing({"scan": scan, "landmark file": landmarks}, model_path)
+    refuse_overwrite({"--out": target, "--log": log, "--preview": preview, "--params": params},
+                     {"scan": scan, "landmark file": landmarks, "model": model_path})
 
     # The library loads once the paths are known good: a mistyped name is refused at once.
     from statfit.core.device import resolve_device

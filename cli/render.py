@@ -11,7 +11,8 @@ from statfit.objectives.weights import SILHOUETTE_WEIGHT
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
                                 LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
                                 ParamsOption, PowerOption, PresetOption, QuietOption, SeedOption, SilhouetteOption,
-                                ThreadsOption, check_preview, refuse_missing, setting_overrides, within)
+                                ThreadsOption, check_preview, refuse_missing, refuse_overwrite, setting_overrides,
+                                within)
 
 
 def render(
@@ -88,6 +89,9 @@ def render(
     mesh_format(out)
     refuse_missing({"normal map": normal_map_path, "camera file": camera_path, "mask": mask, "file": init},
                    model_path)
+    refuse_overwrite({"--out": out, "--log": log, "--preview": preview, "--params": params},
+                     {"normal map": normal_map_path, "camera file": camera_path, "mask": mask, "start mesh": init,
+                      "model": model_path})
 
     # The library loads once the paths are known good: a mistyped name is refused at once.
     from statfit.core.device import resolve_device

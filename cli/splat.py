@@ -18,7 +18,7 @@ if TYPE_CHECKING:
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
                                 LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
                                 ParamsOption, PowerOption, PresetOption, QuietOption, SeedOption, ThreadsOption,
-                                check_preview, refuse_missing, setting_overrides, within)
+                                check_preview, refuse_missing, refuse_overwrite, setting_overrides, within)
 
 MAX_CAMERA_BYTES = 16 << 20
 
@@ -77,6 +77,8 @@ def splat(
             check_writable(target)
     mesh_format(out)
     refuse_missing({}, model_path, folders={"views folder": folder})
+    refuse_overwrite({"--out": out, "--splats": splats_out, "--preview": preview, "--log": log, "--params": params},
+                     {"model": model_path, "views' cameras file": folder / "cameras.json"})
 
     # The library loads once the paths are known good: a mistyped name is refused at once.
     from statfit.core.device import resolve_device
@@ -156,6 +158,7 @@ def splat_render(
 
     suffix = image_suffix(out)
     check_writable(out)
+    refuse_overwrite({"--out": out}, {"splats": splats_path, "mesh": mesh_path, "camera file": camera_path})
     camera = _camera(camera_path, view)
     vertices, faces = read_mesh(mesh_path)
     splats = splats_from_records(read_splats(splats_path, len(faces)), torch.as_tensor(faces, dtype=torch.long))

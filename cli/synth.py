@@ -8,7 +8,8 @@ import typer
 
 from statfit.errors import StatfitError
 from statfit.synth.scan_options import CLUTTER_PARTS, UNITS_PER_METRE
-from statfit_cli.common import ModelOption, QuietOption, count_bar, refuse_missing, seed_option, within
+from statfit_cli.common import (ModelOption, QuietOption, count_bar, refuse_missing, refuse_overwrite, seed_option,
+                                within)
 
 
 app = typer.Typer(help="Make synthetic test data from a model, with its ground truth.", no_args_is_help=True)
@@ -104,6 +105,8 @@ def scan(
         points_format(out)
     check_delta_options(delta, delta_name)
     refuse_missing({"delta file": delta}, model_path)
+    refuse_overwrite({"--out": out, "--gt": gt, "--landmarks-out": landmarks_out},
+                     {"delta file": delta, "model": model_path})
 
     # The library loads once the paths are known good: a mistyped name is refused at once.
     from statfit.io.landmarks import landmarks_text
@@ -169,6 +172,8 @@ def normals(
     if gt is not None:
         mesh_format(gt)
     refuse_missing({"delta file": delta, "file": shape_path}, model_path)
+    refuse_overwrite({"--out": out, "--camera-out": camera_out, "--gt": gt},
+                     {"delta file": delta, "shape": shape_path, "model": model_path})
 
     # The library loads once the paths are known good: a mistyped name is refused at once.
     from statfit.io.mesh import mesh_bytes, read_mesh

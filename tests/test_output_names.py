@@ -30,3 +30,31 @@ def test_an_output_named_for_another_format_is_refused_first(tmp_path, monkeypat
     code, _, err = run(argv, capsys)
     assert code == 2 and message in err and len(err.strip().splitlines()) == 1, err
     assert list(tmp_path.iterdir()) == []
+
+
+OVERWRITES = [
+    (["register", "scan.ply", "--out", "scan.ply"], "--out scan.ply is the scan: statfit never writes over its input"),
+    (["register", "link.ply", "--out", "scan.ply"], "--out scan.ply is the scan"),
+    (["register", "scan.ply", "--out", "fit.ply", "--log", "./fit.ply"], "--out and --log both name fit.ply"),
+    (["register", "scan.ply", "--landmarks", "marks.txt", "--out", "fit.ply", "--log", "marks.txt"],
+     "--log marks.txt is the landmark file"),
+    (["render", "map.png", "--camera", "cam.json", "--out", "fit.ply", "--preview", "map.png"],
+     "--preview map.png is the normal map"),
+    (["synth", "normals", "--shape", "shape.ply", "--out", "n.exr", "--gt", "shape.ply"], "--gt shape.ply is the shape"),
+    (["inpaint", "face.png", "--mask", "holes.png", "--out", "holes.png"], "--out holes.png is the mask"),
+]
+
+
+@pytest.mark.parametrize("argv, message", OVERWRITES, ids=[" ".join(argv) for argv, _ in OVERWRITES])
+def test_an_output_that_names_an_input_or_another_output_is_refused_first(tmp_path, monkeypatch, capsys, argv,
+                                                                           message):
+    """Never a changed input: an output naming an input (by any path, a link too) or another output
+    is refused in one line before any work, and every file stays as it was."""
+    monkeypatch.chdir(tmp_path)
+    for name in ("scan.ply", "marks.txt", "map.png", "cam.json", "shape.ply", "face.png", "holes.png"):
+        (tmp_path / name).write_bytes(name.encode())
+    (tmp_path / "link.ply").symlink_to(tmp_path / "scan.ply")
+    before = {path.name: path.read_bytes() for path in tmp_path.iterdir()}
+    code, _, err = run(argv, capsys)
+    assert code == 2 and message in err and len(err.strip().splitlines()) == 1, err
+    assert {path.name: path.read_bytes() for path in tmp_path.iterdir()} == before
