@@ -23,7 +23,7 @@ import numpy as np
 from statfit.batch.manifest import MANIFEST_NAME, latest_fits, read_rows
 from statfit.batch.plan import map_camera_file
 from statfit.errors import StatfitError
-from statfit.geometry.metrics import surface_distance
+from statfit.geometry.metrics import measured_points, surface_distance
 from statfit.io.image import image_bytes
 from statfit.io.landmarks import read_landmarks
 from statfit.io.mesh import read_mesh, read_points
@@ -38,7 +38,6 @@ COLUMNS = ("input", "output", "status", "reason", "outlier", "error_mean", "erro
            "landmark_error", "pose_ambiguous", "pose_score", "pose_runner_up", "hair_share", "fit_residual",
            "fell_back", "seconds")
 THUMBNAIL = 160             # pixels: the register view's side, the render pair's height
-MAX_POINTS = 50_000         # a larger scan's error is measured on this many of its points (a fixed draw)
 OUTLIER_MADS = 3.0          # mean error above median + this many MADs (of the batch's rows) is an outlier
 PENDING = "not fitted yet: rerun the batch command to fit it"
 
@@ -177,11 +176,10 @@ def _number(value: Any) -> float | None:
 
 
 def measure_register(row: ReportRow, vertices: np.ndarray, faces: np.ndarray, model_to_scan: Any) -> None:
-    """Distance of the scan file's points (at most MAX_POINTS of them) to the fitted surface
+    """Distance of the scan file's points (at most ``MEASURED_POINTS`` of them) to the fitted surface
     (``vertices`` (N, 3), ``faces`` (F, 3)), and a front view of the fit with the points over it."""
     points = _read("input", read_points, row.input)
-    if len(points) > MAX_POINTS:
-        points = points[np.sort(np.random.default_rng(0).choice(len(points), MAX_POINTS, replace=False))]
+    points = measured_points(points)
     distance = surface_distance(points, vertices, faces)
     row.error_mean, row.error_median, row.error_unit = float(distance.mean()), float(np.median(distance)), "scan units"
     turn = np.eye(3) if model_to_scan is None else np.asarray(model_to_scan, dtype=np.float64)[:3, :3]

@@ -74,6 +74,17 @@ def surface_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray
     return _exact_closest(points, vertices, faces)[1].distance.numpy()
 
 
+# A larger scan is measured (and drawn) through this many of its points.
+MEASURED_POINTS = 50_000
+
+
+def measured_points(points: np.ndarray, most: int = MEASURED_POINTS) -> np.ndarray:
+    """At most ``most`` of ``points`` (M, 3), a fixed draw in their order: the same rows every time."""
+    if len(points) <= most:
+        return points
+    return points[np.sort(np.random.default_rng(0).choice(len(points), most, replace=False))]
+
+
 def inside_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, border_band: float = 0.0
                     ) -> np.ndarray:
     """:func:`surface_distance`, NaN where the nearest surface point lies on the surface's open

@@ -27,7 +27,7 @@ def read_point_text(path: Path, head: bytes) -> np.ndarray:
         points = np.loadtxt(path, dtype=np.float64, comments=COMMENTS, delimiter=delimiter, skiprows=skip,
                             usecols=(0, 1, 2), ndmin=2, encoding="utf-8-sig")
     except UnicodeDecodeError:
-        raise StatfitError(f"{path} is not text: a point cloud in {path.suffix} is rows of numbers (x y z)") from None
+        raise _not_text(path) from None
     except ValueError as error:
         raise StatfitError(f"{path}: {_first_bad_row(path, skip, delimiter) or error}") from None
     return points
@@ -51,8 +51,7 @@ def _layout(head: bytes, path: Path) -> tuple[int, str | None]:
         lines = head.decode("utf-8-sig").splitlines()
     except UnicodeDecodeError as error:
         if error.start < len(head) - 4:     # not a character cut in two at the end of the head
-            raise StatfitError(f"{path} is not text: a point cloud in {path.suffix} is rows of numbers (x y z)") \
-                from None
+            raise _not_text(path) from None
         lines = head[:error.start].decode("utf-8-sig").splitlines()
     header = None
     for index, line in enumerate(lines[:-1] if len(head) >= SNIFF_BYTES else lines):
@@ -69,6 +68,10 @@ def _layout(head: bytes, path: Path) -> tuple[int, str | None]:
         raise StatfitError(f"{path}: no row starts with three numbers x y z (row {header + 1}: "
                            f"{lines[header].strip()[:60]!r})")
     raise StatfitError(f"{path} contains no points")
+
+
+def _not_text(path: Path) -> StatfitError:
+    return StatfitError(f"{path} is not text: a point cloud in {path.suffix} is rows of numbers (x y z)")
 
 
 def _starts_with_three_numbers(text: str, delimiter: str | None) -> bool:

@@ -7,13 +7,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from statfit.geometry.metrics import surface_distance
+from statfit.geometry.metrics import measured_points, surface_distance
 from statfit.io.figures import figure_png, pyplot
-from statfit.renderer.images import (FAR_SHARE, field_image, front_camera, mesh_with_points, normals_to_rgb,
-                                     render_target, turned_camera)
+from statfit.renderer.images import (FAR_SHARE, field_image, field_top, front_camera, mesh_with_points,
+                                     normals_to_rgb, render_target, turned_camera)
 
 VIEW = 320                  # pixels: each view's side
-MAX_POINTS = 50_000         # a larger scan is drawn and measured through this many of its points (a fixed draw)
 VIEWS = ((0.0, "front"), (70.0, "turned 70°"), (180.0, "from behind"))
 UNITS = {"data_distance": "scan units", "off_span": "scan units", "observed": "1: seen, 0: guessed"}
 
@@ -24,15 +23,16 @@ def register_preview_png(vertices: np.ndarray, faces: np.ndarray, points: np.nda
     points (M, 3): the scan; turn (3, 3): the model → scan similarity's linear part (where the
     model's front faces); colour: (name, per-vertex values (N,)) to colour the fit by, or None
     for its normals."""
-    if len(points) > MAX_POINTS:
-        points = points[np.sort(np.random.default_rng(0).choice(len(points), MAX_POINTS, replace=False))]
+    points = measured_points(points)
     distance = surface_distance(points, vertices, faces)
     front = front_camera(vertices, turn, VIEW)
     figure, axes = pyplot().subplots(1, 4, figsize=(17, 4.4), constrained_layout=True)
     axes[0].imshow(mesh_with_points(vertices, faces, points, distance, front)[0])
-    axes[0].set_title(f"scan on the fit: distance median {np.median(distance):.3g}, mean {distance.mean():.3g}\n"
+    axes[0].set_title(f"scan on the fit\ndistance median {np.median(distance):.3g}, mean {distance.mean():.3g}\n"
                       f"(green on it, red {FAR_SHARE:.0%} of its radius off)")
-    shown = None
+    if colour is not None:
+        name, values = colour[0], np.asarray(colour[1], dtype=np.float64)
+        top = field_top(values)
     for axis, (degrees, label) in zip(axes[1:], VIEWS):
         camera = turned_camera(front, vertices, degrees)
         if colour is None:
@@ -40,14 +40,10 @@ def register_preview_png(vertices: np.ndarray, faces: np.ndarray, points: np.nda
             axis.imshow(normals_to_rgb(normals, covered))
             axis.set_title(f"fit, {label}")
         else:
-            name, values = colour
-            values = np.asarray(values, dtype=np.float64)
-            finite = values[np.isfinite(values)]
-            top = max(float(np.percentile(finite, 99)) if finite.size else 1.0, 1e-12)
             shown = axis.imshow(field_image(vertices, faces, camera, values), cmap="viridis", vmin=0.0, vmax=top)
             axis.set_title(f"{name}, {label}")
     if colour is not None:
-        figure.colorbar(shown, ax=axes[3], fraction=0.046, pad=0.02, label=f"{colour[0]} ({UNITS.get(colour[0], '')})")
+        figure.colorbar(shown, ax=axes[3], fraction=0.046, pad=0.02, label=f"{name} ({UNITS.get(name, '')})")
     for axis in axes:
         axis.set_axis_off()
     return figure_png(figure)

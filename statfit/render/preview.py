@@ -8,7 +8,7 @@ import numpy as np
 
 from statfit.io.figures import figure_png, pyplot
 from statfit.renderer import Camera
-from statfit.renderer.images import field_image, normals_to_rgb, render_target, turned_camera
+from statfit.renderer.images import field_image, field_top, normals_to_rgb, render_target, turned_camera
 
 SIDE_VIEW_DEG = 70.0
 BACK_VIEW_DEG = 180.0
@@ -60,8 +60,7 @@ def preview_figure(target: np.ndarray, target_mask: np.ndarray, vertices: np.nda
 def _coloured(figure, vertices: np.ndarray, faces: np.ndarray, camera: Camera, name: str, values: np.ndarray) -> bytes:
     """The figure's two other views redrawn coloured by the per-vertex ``values`` (N,)."""
     values = np.asarray(values, dtype=np.float64)
-    finite = values[np.isfinite(values)]
-    top = max(float(np.percentile(finite, 99)) if finite.size else 1.0, 1e-12)
+    top = field_top(values)
     for axis, degrees, label in ((figure.axes[3], SIDE_VIEW_DEG, f"view turned {SIDE_VIEW_DEG:.0f}°"),
                                  (figure.axes[4], BACK_VIEW_DEG, "from behind")):
         axis.images[0].remove()

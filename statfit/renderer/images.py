@@ -91,6 +91,13 @@ def field_image(vertices: np.ndarray, faces: np.ndarray, camera: Camera, values:
     return np.where((fragments.triangle >= 0).numpy(), image.numpy(), np.nan)
 
 
+def field_top(values: np.ndarray) -> float:
+    """The top of a per-vertex field's colour scale (its bottom is 0): the 99th percentile of its
+    finite ``values``, so that a few outliers do not wash the rest out (1 without finite values)."""
+    finite = values[np.isfinite(values)]
+    return max(float(np.percentile(finite, 99)) if finite.size else 1.0, 1e-12)
+
+
 def mesh_with_points(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, distance: np.ndarray,
                      camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     """RGB (H, W, 3) in [0, 1] and what it shows (H, W) bool: the mesh (N, 3)/(F, 3) shaded by a
