@@ -3,7 +3,7 @@
 (normals, colours, intensity) is not read. Numbers are separated by whitespace, commas or
 semicolons (as the first point's row has them); ``#`` and ``//`` start comments, and one header
 row of names (``X,Y,Z,Nx,Ny,Nz``) may come before the points. Parsed by NumPy's C reader
-(``numpy.loadtxt``): a million points in ~0.45 s on one core (docs/benchmarks.md §11).
+(``numpy.loadtxt``): a million points (64 MB) in ~0.9 s on one core (docs/benchmarks.md §11).
 """
 from __future__ import annotations
 
