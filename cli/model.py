@@ -210,6 +210,7 @@ def cut(
 
 @app.command("sample")
 def sample(
+    ctx: typer.Context,
     model_path: Path = typer.Argument(None, help=f"The model: {ANY_MODEL}. Default: the embedded synthetic head.",
                                       show_default=False),
     out: str = typer.Option(..., "--out", "-o", help="Mesh to write (.ply or .obj; '-' for PLY on stdout).",
@@ -217,7 +218,7 @@ def sample(
     sigma: float = typer.Option(1.0, help="Coefficients ~ N(0, sigma²) in standard deviations; 0 gives the template.",
                                callback=within(0, 100)),
     seed: int = SeedOption,
-    params: Path = typer.Option(None, "--params", help="Instead of a random shape, the shape a params file codes "
+    params: Path = typer.Option(None, "--params", help="Instead of a random shape (no --sigma, --seed), the shape a params file codes "
                                 "(`register/render/splat --params`): the model at its coefficients, posed by its "
                                 "similarity, in the data's frame. The model (and --k) must be the fit's.",
                                 show_default=False),
@@ -234,6 +235,11 @@ def sample(
 
     if not np.isfinite(sigma) or sigma < 0:
         raise StatfitError("--sigma must be a finite number ≥ 0")
+    # Typed on the command line (or from the environment): not the default. By name: typer vendors click.
+    given = [f"--{name}" for name in ("sigma", "seed") if ctx.get_parameter_source(name).name != "DEFAULT"]
+    if params is not None and given:
+        raise StatfitError(f"--params gives the shape; {' and '.join(given)} would not change it: leave "
+                           f"{'them' if len(given) > 1 else 'it'} out")
     check_writable(out)
     mesh_format(out)
     refuse_missing({"params file": params}, model_path)

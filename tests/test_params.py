@@ -202,7 +202,10 @@ def test_bad_params_exit_2_and_write_nothing(model, tmp_path, capsys):
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
     for argv, message in ((["model", "sample", str(small), "--params", str(params)], "50 modes"),
                           (["model", "sample", "--params", str(tmp_path / "junk.npz")], "not an npz"),
-                          (["model", "sample", "--params", str(tmp_path / "none.json")], "not found")):
+                          (["model", "sample", "--params", str(tmp_path / "none.json")], "not found"),
+                          (["model", "sample", "--params", str(params), "--seed", "0"], "--seed would not"),
+                          (["model", "sample", "--params", str(params), "--sigma", "2", "--seed", "1"],
+                           "--sigma and --seed would not")):
         code, _, err = run([*argv, "-o", str(tmp_path / "out.ply")], capsys)
         assert code == 2 and message in err and len(err.strip().splitlines()) == 1, err
         assert not (tmp_path / "out.ply").exists()
