@@ -219,8 +219,8 @@ def sample(
                                callback=within(0, 100)),
     seed: int = SeedOption,
     params: Path = typer.Option(None, "--params", help="Instead of a random shape (no --sigma, --seed), the "
-                                "shape a params file codes (`register/render/splat --params`): the model at its coefficients, posed by its "
-                                "similarity, in the data's frame. The model (and --k) must be the fit's.",
+                                "shape a params file codes (`register/render/splat --params`): the model at its "
+                                "coefficients, posed by its similarity, in the data's frame. The model (and --k) must be the fit's.",
                                 show_default=False),
     k: int = typer.Option(None, "--k", help="Use only the first K modes (as the fit did).", show_default=False),
 ) -> None:
