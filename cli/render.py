@@ -48,7 +48,7 @@ def render(
     silhouette_weight: float = typer.Option(SILHOUETTE_WEIGHT, help="Weight of the silhouette term (0: off).",
                                             callback=within(0, 1e6)),
     silhouette: str = SilhouetteOption,
-    region: str = typer.Option(None, "--region", help="Fit only the model's region NAME (e.g. face): after the "
+    region: str = typer.Option(None, "--region", metavar="<name>", help="Fit only the model's region NAME (e.g. face): after the "
                                "alignment, only pixels showing the region's triangles count and the silhouette is "
                                "not used; the rest of the mesh follows the model's prior.", show_default=False),
     device: str = DeviceOption,

@@ -31,12 +31,13 @@ def batch_register(
                                 "<output stem>.params.json (see `statfit register --help`, docs/formats.md)."),
     align: str = typer.Option("auto", help="Pre-alignment of each scan: auto (pose, scale and units found), none, "
                               "rigid or similarity (see `statfit register --help`)."),
-    region: str = typer.Option(None, "--region", help="Fit only the model's region NAME (see `statfit register "
+    region: str = typer.Option(None, "--region", metavar="<name>", help="Fit only the model's region NAME (see `statfit register "
                                "--help`).", show_default=False),
     refresh: int = typer.Option(10, help="Recompute closest surface points every N iterations.",
                                 callback=within(1, 100_000)),
     trim: float = typer.Option(0.05, help="Fraction of farthest scan points ignored.", callback=within(0, 0.99)),
-    landmarks: str = typer.Option(None, "--landmarks", help="Each scan's own landmarks file, named by this "
+    landmarks: str = typer.Option(None, "--landmarks", metavar="<template>",
+                                  help="Each scan's own landmarks file, named by this "
                                   "template: {stem} is the scan's name without its extension, and a relative path "
                                   "lies in the scan's folder ('{stem}.pts': scans/a.ply uses scans/a.pts; "
                                   "'/data/lm/{stem}.txt'). Rows and use as for `statfit register --landmarks`. A "

@@ -21,7 +21,8 @@ from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, KOpt
 def batch_render(
     inputs: list[str] = InputsArgument,
     out_dir: Path = OutDirOption,
-    camera_path: str = typer.Option(None, "--camera", "-c", help="One camera JSON for every map, or each map's own "
+    camera_path: str = typer.Option(None, "--camera", "-c", metavar="<path|template>",
+                                    help="One camera JSON for every map, or each map's own "
                                     "named by a template: {stem} is the map's name without its extension, and a "
                                     "relative path lies in the map's folder ('{stem}.json': maps/a.png uses "
                                     "maps/a.json). Default: each map's own camera, from its EXR header.",
@@ -46,7 +47,7 @@ def batch_render(
     silhouette_weight: float = typer.Option(SILHOUETTE_WEIGHT, help="Weight of the silhouette term (0: off).",
                                             callback=within(0, 1e6)),
     silhouette: str = SilhouetteOption,
-    region: str = typer.Option(None, "--region", help="Fit only the model's region NAME.", show_default=False),
+    region: str = typer.Option(None, "--region", metavar="<name>", help="Fit only the model's region NAME.", show_default=False),
     device: str = DeviceOption,
     threads: int = BatchThreadsOption,
     together: int = typer.Option(None, "--together", help="Maps each worker fits in one program: each its own "
