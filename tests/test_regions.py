@@ -16,7 +16,14 @@ from statfit.objectives.normals import NormalMapObjective
 from statfit.synth.sample import camera_for_view
 from statfit.renderer.images import render_target
 from test_cli import run
-from test_cli_models import _threads, mean_error  # noqa: F401 (_threads: one torch thread here too)
+from test_cli_models import mean_error
+
+
+@pytest.fixture(autouse=True)
+def _threads():
+    """One torch thread (overrides conftest's two), as in test_cli_models: these fits slow down 4×
+    with two threads while the other core is busy."""
+    torch.set_num_threads(1)
 
 
 def test_region_normal_term_ignores_vertices_away_from_the_region(embedded_model):
