@@ -2,7 +2,13 @@
 float32 arrays (H, W, C) in [0, 1]; masks and UV-chart label images as (H, W) arrays.
 
 8-bit values v map to v / 255 and back by rounding, so an 8-bit image survives a round trip
-exactly; EXR values are kept as they are (float, not clipped on reading).
+exactly; 16-bit values v map to v / 65535; EXR values are kept as they are (float, not clipped on
+reading).
+
+Pillow has no 16-bit colour mode: it decodes a 16-bit RGB(A) PNG to 8 bits a sample (a normal map
+read so fits ~25% worse than from its 16 bits, docs/formats.md). Such a file is decoded twice here,
+once keeping each big-endian sample's high byte (Pillow's own rawmode) and once its low byte (the
+little-endian rawmode, which keeps the byte at the sample's second place), and the two put together.
 """
 from __future__ import annotations
 
@@ -61,8 +67,15 @@ def _opened(path: Path, what: str, decode) -> np.ndarray:
         raise StatfitError(f"cannot read {what} {path}: {exc}") from None
 
 
+# The rawmode of a 16-bit colour PNG's samples (big-endian) → the rawmode reading their low bytes.
+LOW_BYTES = {"RGB;16B": "RGB;16L", "RGBA;16B": "RGBA;16L"}
+
+
 def _decoded(image: Image.Image, path: Path) -> np.ndarray:
     """The opened ``image`` decoded to float32 (H, W, C)."""
+    rawmode = _png_rawmode(image)
+    if rawmode in LOW_BYTES:
+        return _sixteen_bit_colour(image, path, rawmode)
     image.load()
     if image.mode in ("I;16", "I;16B", "I;16L", "I"):
         return (np.asarray(image, dtype=np.float32) / 65535.0)[..., None]
@@ -70,6 +83,27 @@ def _decoded(image: Image.Image, path: Path) -> np.ndarray:
         image = image.convert("RGBA" if "A" in image.getbands() or "transparency" in image.info else "RGB")
     data = np.asarray(image, dtype=np.float32) / 255.0
     return data[..., None] if data.ndim == 2 else data
+
+
+def _png_rawmode(image: Image.Image) -> str | None:
+    """How Pillow will unpack an opened PNG's samples (e.g. 'RGB;16B'); None for other files."""
+    if image.format != "PNG" or len(image.tile) != 1:
+        return None
+    args = image.tile[0][3]
+    return args if isinstance(args, str) else None
+
+
+def _sixteen_bit_colour(image: Image.Image, path: Path, rawmode: str) -> np.ndarray:
+    """A 16-bit RGB(A) PNG, opened as ``image`` (its samples ``rawmode``), at all its 16 bits:
+    float32 (H, W, C), v / 65535."""
+    image.load()
+    high = np.asarray(image, dtype=np.uint16)
+    with Image.open(path) as again:
+        codec, extents, offset, _ = again.tile[0]
+        again.tile = [(codec, extents, offset, LOW_BYTES[rawmode])]
+        again.load()
+        low = np.asarray(again, dtype=np.uint16)
+    return ((high << 8) | low).astype(np.float32) / 65535.0
 
 
 def _read_exr(path: Path) -> np.ndarray:

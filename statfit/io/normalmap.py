@@ -5,7 +5,7 @@ EXR channels R, G, B hold a unit normal per pixel and A the coverage mask (1 for
 background); half or float. Without A, pixels with a zero-length normal are background. A camera
 may travel in the header as the standard ``worldToCamera`` attribute (4×4) plus a ``K`` (3×3).
 
-A PNG (8-bit; Pillow reads a 16-bit one's 8 high bits) holds (n + 1) / 2 per channel, the way normal
+A PNG (8- or 16-bit, :func:`statfit.io.image.read_image`) holds (n + 1) / 2 per channel, the way normal
 estimators and bakers save normal maps; a pixel is foreground where its alpha (if any) is over
 half and its decoded normal is within ``PNG_UNIT_TOLERANCE`` of unit length: black and white
 backgrounds decode to length √3, mid-grey to 0, and 8-bit rounding moves a true normal's length by
