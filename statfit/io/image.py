@@ -6,9 +6,10 @@ exactly; 16-bit values v map to v / 65535; EXR values are kept as they are (floa
 reading).
 
 Pillow has no 16-bit colour mode: it decodes a 16-bit RGB(A) PNG to 8 bits a sample (a normal map
-read so fits ~25% worse than from its 16 bits, docs/formats.md). Such a file is decoded twice here,
-once keeping each big-endian sample's high byte (Pillow's own rawmode) and once its low byte (the
-little-endian rawmode, which keeps the byte at the sample's second place), and the two put together.
+of a person the model makes, read so, fits ~29% worse than from its 16 bits: docs/studies.md §38).
+Such a file is decoded twice here, once keeping each big-endian sample's high byte (Pillow's own
+rawmode) and once its low byte (the little-endian rawmode, which keeps the byte at the sample's
+second place), and the two put together.
 """
 from __future__ import annotations
 
