@@ -17,7 +17,7 @@ from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, Json
 
 def render(
     normal_map_path: Path = typer.Argument(..., metavar="NORMALS.EXR", help="Normal map: OpenEXR with R, G, B = unit "
-                                           "normal and A = coverage, or a PNG holding (n + 1) / 2 (background: alpha, "
+                                           "normal and A = coverage, or an 8- or 16-bit PNG holding (n + 1) / 2 (background: alpha, "
                                            "or black, white or grey; give --camera) (docs/formats.md).",
                                            show_default=False),
     camera_path: Path = typer.Option(None, "--camera", "-c", help="Camera JSON (width, height, K, world_to_camera). "
