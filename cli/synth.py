@@ -7,7 +7,7 @@ import numpy as np
 import typer
 
 from statfit.errors import StatfitError
-from statfit.synth.scan_options import CLUTTER_PARTS, UNITS_PER_METRE
+from statfit.synth.scan_options import CLUTTER_PARTS, SCAN_UNITS_PER_METRE
 from statfit_cli.common import (ModelOption, QuietOption, count_bar, refuse_missing, refuse_overwrite, seed_option,
                                 within)
 
@@ -64,7 +64,7 @@ def scan(
     clutter_parts: str = typer.Option(",".join(CLUTTER_PARTS), help="--realistic: which clutter, comma-separated: "
                                       "hair (over the scalp, hiding it), neck (neck and shoulders below)."),
     holes: int = typer.Option(3, help="--realistic: disks of lost data.", callback=within(0, 100)),
-    units: str = typer.Option("mm", help="--realistic: the scan's length unit (mm, cm or m)."),
+    units: str = typer.Option("mm", help="--realistic: the scan's length unit (mm, cm, m or in)."),
     pose: bool = typer.Option(True, "--pose/--no-pose", help="--realistic: turn the scan by a random rotation and "
                               "offset (--no-pose: the model's frame, in --units)."),
     landmarks_out: Path = typer.Option(None, help="--realistic: the true landmarks in the scan's frame (text, "
@@ -85,8 +85,8 @@ def scan(
     if realistic and outliers > 0:
         raise StatfitError("--outliers adds loose points to a point cloud; a --realistic scan is a mesh with clutter "
                            "surfaces (--clutter) instead")
-    if units not in UNITS_PER_METRE:
-        raise StatfitError(f"unknown --units {units!r}; choose one of {', '.join(UNITS_PER_METRE)}")
+    if units not in SCAN_UNITS_PER_METRE:
+        raise StatfitError(f"unknown --units {units!r}; choose one of {', '.join(SCAN_UNITS_PER_METRE)}")
     if landmarks_out is not None and not realistic:
         raise StatfitError("--landmarks-out goes with --realistic")
     parts = tuple(part.strip() for part in clutter_parts.split(",") if part.strip())

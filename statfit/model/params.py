@@ -29,8 +29,8 @@ class Projection:
     coefficients: (K,) float64 in standard deviations, the model's own signs; transform: the
     similarity model → data; off_span: (N,) float64 distance of each fitted vertex from the
     model's span, model units (zero for a mesh the model makes, None when read from a file);
-    units_factor: the power of ten the automatic alignment found between the data's units and the
-    model's (None: not searched)."""
+    units_factor: the unit the automatic alignment found between the data's units and the model's,
+    a power of ten or one over 2.54 (inches) (None: not searched)."""
 
     coefficients: np.ndarray
     transform: Similarity

@@ -19,7 +19,7 @@ from statfit.geometry.align import Similarity
 from statfit.errors import StatfitError
 from statfit.structures.frame import Frame, surface_vertices
 from statfit.synth.sample import view_direction
-from statfit.synth.scan_options import CLUTTER_PARTS, UNITS_PER_METRE
+from statfit.synth.scan_options import CLUTTER_PARTS, SCAN_UNITS_PER_METRE, UNITS_PER_METRE
 
 # Hits whose surface turns away from the rays beyond this (cosine) are lost, as in a real scanner.
 GRAZING_COSINE = 0.2
@@ -117,11 +117,11 @@ def realistic_scan(vertices: np.ndarray, faces: np.ndarray, rng: np.random.Gener
     ``view_direction(yaw, pitch)``, with about ``points`` points on the shape; ``clutter`` the
     clutter points per shape point wanted (hair, then as much neck and shoulders as it takes; 0:
     none), ``holes`` disks of lost data, ``noise`` the depth noise in RMS radii, ``units`` the
-    scan's length unit (mm, cm, m; the model's is guessed from its size), ``posed`` a rotation
+    scan's length unit (mm, cm, m, in; the model's is guessed from its size), ``posed`` a rotation
     uniform over all rotations plus an offset, and ``clutter_parts`` which clutter there is (of
     CLUTTER_PARTS; without ``neck``, the hair is all the clutter)."""
-    if units not in UNITS_PER_METRE:
-        raise StatfitError(f"unknown units {units!r}; choose one of {', '.join(UNITS_PER_METRE)}")
+    if units not in SCAN_UNITS_PER_METRE:
+        raise StatfitError(f"unknown units {units!r}; choose one of {', '.join(SCAN_UNITS_PER_METRE)}")
     if not 0 <= clutter <= 2:
         raise StatfitError(f"clutter must lie in [0, 2] (clutter points per shape point), got {clutter}")
     if unknown := set(clutter_parts) - set(CLUTTER_PARTS):
@@ -168,7 +168,7 @@ def realistic_scan(vertices: np.ndarray, faces: np.ndarray, rng: np.random.Gener
     if len(used) < 10:
         raise StatfitError(f"only {len(used)} scan points are visible from yaw {yaw_deg}, pitch {pitch_deg}")
     scan = hits[used] + rng.normal(scale=noise * frame.scale, size=(len(used), 1)) * toward
-    to_scan = Similarity(UNITS_PER_METRE[units] / model_units(vertices))
+    to_scan = Similarity(SCAN_UNITS_PER_METRE[units] / model_units(vertices))
     if posed:
         rotation = Rotation.random(random_state=rng).as_matrix()
         offset = rng.uniform(-5, 5, size=3) * frame.scale * to_scan.scale
