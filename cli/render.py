@@ -11,8 +11,8 @@ from statfit.objectives.weights import SILHOUETTE_WEIGHT
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
                                 LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
                                 ParamsOption, PowerOption, PresetOption, QuietOption, SeedOption, SilhouetteOption,
-                                ThreadsOption, check_preview, refuse_missing, refuse_overwrite, setting_overrides,
-                                within)
+                                ThreadsOption, check_preview, printed_warnings, refuse_missing, refuse_overwrite,
+                                setting_overrides, within)
 
 
 def render(
@@ -108,7 +108,8 @@ def render(
     overrides = setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain)
     stages = render_stages(method, preset, region, **overrides)
     torch_device = resolve_device(device, "render")
-    normal_map = read_normal_map(normal_map_path)
+    with printed_warnings():
+        normal_map = read_normal_map(normal_map_path)
     if mask is not None:
         normal_map = apply_mask(normal_map, read_mask(mask), str(mask))
     camera = camera_for_map(normal_map, camera_path, normal_map_path)

@@ -8,6 +8,7 @@ import OpenEXR
 import pytest
 
 from statfit.errors import StatfitError
+from statfit.io.mesh import read_mesh
 from statfit.io.normalmap import (apply_mask, check_camera_fits, read_camera, read_normal_map, write_camera,
                                   write_normal_map)
 from statfit.structures.camera import Camera
@@ -176,3 +177,66 @@ def test_a_png_that_is_no_normal_map_is_refused(tmp_path, image, message):
     Image.fromarray(image).save(tmp_path / "n.png")
     with pytest.raises(StatfitError, match=message.replace("(", r"\(").replace(")", r"\)").replace("+", r"\+")):
         read_normal_map(tmp_path / "n.png")
+
+
+def _sphere(size: int = 48) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals of a sphere's cap (size, size, 3) and its mask (a quarter of the image background)."""
+    u = (np.arange(size) + 0.5) / size * 2.0 - 1.0
+    x, y = np.meshgrid(u, u)
+    mask = x * x + y * y < 0.9
+    return np.stack([x, y, np.sqrt(np.clip(1.0 - x * x - y * y, 0.0, None))], axis=-1) * mask[..., None], mask
+
+
+@pytest.mark.parametrize("background, alpha", [(0.0, True), (0.0, False), (0.5, False), (1.0, True)])
+def test_an_exr_holding_encoded_normals_is_read_as_a_png_is_with_a_warning(tmp_path, background, alpha):
+    """(n + 1) / 2 per channel in an EXR: decoded, the background (black, grey, with or without
+    alpha) left out, and said; without the decoding every normal would be wrong (their lengths
+    0.4–1.4, normalised as they lie)."""
+    from statfit.errors import StatfitWarning
+    from statfit.io.exr import write_exr
+
+    normals, mask = _sphere()
+    encoded = np.where(mask[..., None], (normals + 1.0) / 2.0, background).astype(np.float32)
+    channels = {c: encoded[..., i] for i, c in enumerate("RGB")}
+    if alpha:
+        channels["A"] = mask.astype(np.float32)
+    write_exr(tmp_path / "n.exr", channels)
+    with pytest.warns(StatfitWarning, match=r"decode as \(n \+ 1\) / 2 to unit normals"):
+        loaded = read_normal_map(tmp_path / "n.exr")
+    np.testing.assert_array_equal(loaded.mask, mask)
+    assert np.abs(loaded.normals - normals)[mask].max() < 1e-5
+
+
+def test_an_exr_of_unit_normals_facing_one_quadrant_is_read_as_it_is(tmp_path, recwarn):
+    """Unit normals with no negative component (all in [0, 1]) are not taken for encoded ones."""
+    from statfit.io.exr import write_exr
+
+    normals, mask = _sphere()
+    normals = np.abs(normals)
+    write_exr(tmp_path / "n.exr", {c: normals[..., i].astype(np.float32) for i, c in enumerate("RGB")})
+    loaded = read_normal_map(tmp_path / "n.exr")
+    np.testing.assert_array_equal(loaded.mask, mask)
+    assert np.abs(loaded.normals - normals)[mask].max() < 1e-6
+    assert not recwarn.list
+
+
+def test_render_fits_an_encoded_exr_as_its_unit_normals_and_says_so(tmp_path, capsys):
+    from test_cli import run
+    from statfit.io.exr import write_exr
+
+    exr, camera = tmp_path / "n.exr", tmp_path / "cam.json"
+    assert run(["synth", "normals", "--seed", "3", "--size", "64", "--out", str(exr), "--camera-out", str(camera)],
+               capsys)[0] == 0
+    exact = read_normal_map(exr)
+    encoded = np.where(exact.mask[..., None], (exact.normals + 1.0) / 2.0, 0.5).astype(np.float32)
+    write_exr(tmp_path / "encoded.exr", {c: encoded[..., i] for i, c in enumerate("RGB")})
+    fits = []
+    for source in (exr, tmp_path / "encoded.exr"):
+        fit = tmp_path / f"{source.stem}_fit.ply"
+        code, _, err = run(["render", str(source), "--camera", str(camera), "--out", str(fit), "--iterations", "40",
+                            "-q"], capsys)
+        assert code == 0, err
+        fits.append((read_mesh(fit)[0], err))
+    assert "decode as (n + 1) / 2" in fits[1][1] and "decode" not in fits[0][1]
+    radius = np.sqrt(((fits[0][0] - fits[0][0].mean(axis=0)) ** 2).sum(axis=1).mean())
+    assert np.linalg.norm(fits[1][0] - fits[0][0], axis=1).mean() < 1e-3 * radius

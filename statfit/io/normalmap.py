@@ -2,7 +2,10 @@
 and out.
 
 EXR channels R, G, B hold a unit normal per pixel and A the coverage mask (1 foreground, 0
-background); half or float. Without A, pixels with a zero-length normal are background. A camera
+background); half or float. Without A, pixels with a zero-length normal are background. An EXR
+holding (n + 1) / 2 per channel, as a PNG does (some bakers and converters write float images so),
+is read as a PNG is, with a warning: its foreground values all lie in [0, 1], they decode to unit
+normals and are not unit themselves (no map of unit normals is all three). A camera
 may travel in the header as the standard ``worldToCamera`` attribute (4×4) plus a ``K`` (3×3).
 
 A PNG (8- or 16-bit, :func:`statfit.io.image.read_image`) holds (n + 1) / 2 per channel, the way normal
@@ -14,11 +17,12 @@ less than 0.02. A PNG carries no camera (``--camera``).
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
 
-from statfit.errors import StatfitError
+from statfit.errors import StatfitError, StatfitWarning
 from statfit.io.exr import is_exr, read_exr, write_exr
 from statfit.io.files import existing_file, write_atomic
 from statfit.io.image import read_image
@@ -26,6 +30,12 @@ from statfit.structures.camera import Camera
 from statfit.structures.normal_map import NormalMap
 
 PNG_UNIT_TOLERANCE = 0.1
+# An EXR's foreground whose values lie within ENCODED_SLACK of [0, 1], of which at least ENCODED_SHARE
+# (of the pixels not decoding to about zero: a grey background) decodes as (n + 1) / 2 to unit normals
+# (within PNG_UNIT_TOLERANCE) while its stored normals' median length is off 1 by more than
+# PNG_UNIT_TOLERANCE, holds encoded normals.
+ENCODED_SLACK = 1e-3
+ENCODED_SHARE = 0.5
 
 
 def read_normal_map(path: str | Path) -> NormalMap:
@@ -40,7 +50,30 @@ def read_normal_map(path: str | Path) -> NormalMap:
     normals = np.stack([channels[c] for c in "RGB"], axis=-1)
     length = np.linalg.norm(normals, axis=-1)
     mask = channels["A"] > 0.5 if "A" in channels else length > 0
+    if (decoded := _decoded_colour(normals, mask)) is not None:
+        warnings.warn(f"{path}: its values lie in [0, 1] and decode as (n + 1) / 2 to unit normals: read as a "
+                      "PNG normal map's are (an EXR normal map holds the unit normals themselves)", StatfitWarning,
+                      stacklevel=2)
+        normals, length, unit = decoded
+        mask = mask & unit
     return NormalMap(*_validated(normals, length, mask, path), camera=_header_camera(header, normals.shape))
+
+
+def _decoded_colour(normals: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """For an EXR map ``normals`` (H, W, 3) holding (n + 1) / 2 per channel on ``mask`` (H, W): the
+    decoded normals, their lengths and whether each is unit (H, W); None for any other map."""
+    values = normals[mask]
+    if values.size == 0 or values.min() < -ENCODED_SLACK or values.max() > 1.0 + ENCODED_SLACK:
+        return None
+    decoded = normals * 2.0 - 1.0
+    length = np.linalg.norm(decoded, axis=-1)
+    unit = np.abs(length - 1.0) < PNG_UNIT_TOLERANCE
+    stored = np.linalg.norm(normals[mask & unit], axis=-1)
+    # A grey background (0.5 each) decodes to length 0: not counted either way.
+    if ((mask & unit).sum() < ENCODED_SHARE * (mask & (length > 0.5)).sum() or stored.size == 0
+            or np.median(np.abs(stored - 1.0)) <= PNG_UNIT_TOLERANCE):
+        return None
+    return decoded, length, unit
 
 
 def _read_png(path: Path) -> NormalMap:
