@@ -87,6 +87,28 @@ def test_camera_space_normals_give_the_world_space_result(normal_files, tmp_path
     np.testing.assert_allclose(local, world, atol=1e-3 * np.ptp(world, axis=0).max())
 
 
+@pytest.mark.parametrize("stored, read, advice", [
+    ("world", ["--normal-space", "camera"], "world-space normals (--normal-space world)"),
+    ("opencv", [], "camera-space (OpenCV) normals (--normal-space camera --normal-convention opencv)"),
+    ("opengl", ["--normal-space", "camera"],
+     "camera-space (OpenGL) normals (--normal-space camera --normal-convention opengl)"),
+])
+def test_a_map_read_in_another_frame_than_its_own_is_refused_naming_its_own(normal_files, tmp_path, capsys, stored,
+                                                                          read, advice):
+    """Normals of a visible surface face the camera: read in the wrong frame they face away (every
+    test map's in its own frame: ≥ 93% of the foreground faces the camera; in another ≤ 3%)."""
+    from statfit.render.framing import camera_space_normals, facing_share
+
+    exr, camera, _ = normal_files
+    source = exr if stored == "world" else _camera_space_copy(exr, tmp_path / "local.exr", stored)
+    normal_map, pinhole = read_normal_map(source), read_camera(camera)
+    own = ("world", "opencv") if stored == "world" else ("camera", stored)
+    assert facing_share(camera_space_normals(normal_map, pinhole, *own), normal_map.mask, pinhole) >= 0.9
+    code, _, err = run(["render", str(source), *read, "--out", str(tmp_path / "f.ply"), *FAST], capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "face away from the camera" in err and advice in err, err
+    assert not (tmp_path / "f.ply").exists()
+
+
 def test_mask_png_restricts_the_fit(normal_files, tmp_path, capsys):
     exr, _, _ = normal_files
     mask = read_normal_map(exr).mask.copy()

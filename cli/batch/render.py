@@ -87,7 +87,8 @@ def batch_render(
     from statfit.core.device import resolve_device
     from statfit.io.normalmap import read_camera
     from statfit.model.statmodel import region_vertices
-    from statfit.render.job import ALIGNMENTS, NORMAL_CONVENTIONS, NORMAL_SPACES, render_stages, silhouette_sides
+    from statfit.render.framing import NORMAL_CONVENTIONS, NORMAL_SPACES
+    from statfit.render.job import ALIGNMENTS, render_stages, silhouette_sides
     from statfit.render.many import together_for
     from statfit_cli.batch.running import check_engine, create_out_dir, model_identity, run_fits
 

@@ -33,7 +33,7 @@ from statfit.model.statmodel import StatModel, region_triangles
 from statfit.objectives.normals import NormalMapObjective
 from statfit.objectives.weights import SILHOUETTE_WEIGHT
 from statfit.core.runaway import check_not_runaway
-from statfit.render.framing import check_framing, checked_init
+from statfit.render.framing import camera_space_normals, check_framing, check_normals_face_camera, checked_init
 from statfit.render.visibility import alignment_visibility, visibility_options
 from statfit.core.pose import camera_in_frame, fit_pose
 from statfit.core.device import resolve_device
@@ -42,9 +42,7 @@ from statfit.core.stages import Fit, PipelineResult, run_stages
 from statfit.core.threads import choose_threads, intra_op_threads
 
 ALIGNMENTS = ("none", "rigid", "similarity")
-NORMAL_SPACES = ("world", "camera")
 SILHOUETTES = ("auto", "two-sided", "one-sided", "covering")
-NORMAL_CONVENTIONS = ("opencv", "opengl")
 POSE_ITERATIONS = 200
 POSE_LR = 0.01
 # The alignment stops once its best value fell by less than this share over 25 iterations (it settles
@@ -72,24 +70,6 @@ def render_stages(method: str = "default", preset: str = "tuned", region: str | 
     if region is not None and method == "default":
         method = "hybrid"
     return resolve(method, preset, job="render", **overrides)
-
-
-def camera_space_normals(normal_map: NormalMap, camera: Camera, space: str = "world",
-                         convention: str = "opencv") -> np.ndarray:
-    """The map's normals (H, W, 3) in camera space with OpenCV axes (x right, y down, z forward).
-
-    space 'world': normals in the camera's world frame; 'camera' with convention 'opencv', or
-    'opengl' (x right, y up, z towards the viewer)."""
-    if space not in NORMAL_SPACES:
-        raise StatfitError(f"unknown normal space {space!r}; choose world or camera")
-    if convention not in NORMAL_CONVENTIONS:
-        raise StatfitError(f"unknown normal convention {convention!r}; choose opencv or opengl")
-    normals = normal_map.normals.astype(np.float64)
-    if space == "world":
-        normals = normals @ camera.rotation.numpy().T
-    elif convention == "opengl":
-        normals = normals * np.array([1.0, -1.0, -1.0])
-    return np.where(normal_map.mask[..., None], normals, 0.0)
 
 
 def _centring_guess(template: torch.Tensor, faces: torch.Tensor, camera: Camera, mask: np.ndarray,
@@ -231,8 +211,9 @@ class PosedView:
         check_framing(surface_vertices(start_shape, model.faces), camera, normal_map.mask, align)
         frame = model.frame
         space = FitSpace.of(model, frame, device, dtype)
-        target = torch.as_tensor(camera_space_normals(normal_map, camera, normal_space, normal_convention),
-                                 dtype=dtype, device=device)
+        in_camera = camera_space_normals(normal_map, camera, normal_space, normal_convention)
+        check_normals_face_camera(in_camera, normal_map, camera, normal_space, normal_convention)
+        target = torch.as_tensor(in_camera, dtype=dtype, device=device)
         mask = torch.as_tensor(normal_map.mask, device=device)
         faces = torch.as_tensor(model.faces, dtype=torch.long, device=device)
         x0 = torch.as_tensor(frame.to_unit(start_shape), dtype=dtype, device=device)
