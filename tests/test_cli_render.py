@@ -109,6 +109,24 @@ def test_a_map_read_in_another_frame_than_its_own_is_refused_naming_its_own(norm
     assert not (tmp_path / "f.ply").exists()
 
 
+def test_an_opengl_camera_to_world_fits_as_statfits_own_camera(normal_files, tmp_path, capsys):
+    """A camera as NeRF and Blender describe it (camera-to-world, OpenGL axes) gives the fit that
+    statfit's own JSON of the same camera gives."""
+    exr, camera, _ = normal_files
+    own = read_camera(camera)
+    opengl = np.diag([1.0, -1.0, -1.0, 1.0]) @ own.world_to_camera.numpy()
+    (tmp_path / "gl.json").write_text(json.dumps({"width": own.width, "height": own.height, "K": own.K.tolist(),
+                                                  "camera_to_world": np.linalg.inv(opengl).tolist(),
+                                                  "convention": "opengl"}))
+    fits = []
+    for name in (camera, tmp_path / "gl.json"):
+        out = tmp_path / f"{Path(name).stem}.ply"
+        assert run(["render", str(exr), "--camera", str(name), "--align", "none", "--out", str(out), *FAST],
+                   capsys)[0] == 0
+        fits.append(trimesh.load(out, process=False).vertices)
+    np.testing.assert_allclose(fits[1], fits[0], atol=1e-6 * np.ptp(fits[0], axis=0).max())
+
+
 def test_mask_png_restricts_the_fit(normal_files, tmp_path, capsys):
     exr, _, _ = normal_files
     mask = read_normal_map(exr).mask.copy()

@@ -56,6 +56,41 @@ def test_camera_json_round_trip(tmp_path, camera):
     assert (again.width, again.height) == (40, 30)
 
 
+def _described(camera: Camera, pose: str, convention: str) -> dict:
+    """``camera`` as other tools describe it: its pose as world_to_camera or camera_to_world, with
+    OpenCV or OpenGL camera axes (OpenGL's y and z are OpenCV's negated)."""
+    world_to_camera = camera.world_to_camera.numpy()
+    if convention == "opengl":
+        world_to_camera = np.diag([1.0, -1.0, -1.0, 1.0]) @ world_to_camera
+    matrix = world_to_camera if pose == "world_to_camera" else np.linalg.inv(world_to_camera)
+    return {"width": camera.width, "height": camera.height, "K": camera.K.tolist(), pose: matrix.tolist(),
+            "convention": convention}
+
+
+@pytest.mark.parametrize("pose", ["world_to_camera", "camera_to_world"])
+@pytest.mark.parametrize("convention", ["opencv", "opengl"])
+def test_a_camera_described_as_other_tools_do_reads_as_the_same_camera(tmp_path, camera, pose, convention):
+    """NeRF's and Blender's camera-to-world in OpenGL axes, or statfit's own: the same camera."""
+    (tmp_path / "c.json").write_text(json.dumps(_described(camera, pose, convention)))
+    again = read_camera(tmp_path / "c.json")
+    np.testing.assert_allclose(again.world_to_camera.numpy(), camera.world_to_camera.numpy(), atol=1e-12)
+    np.testing.assert_array_equal(again.K.numpy(), camera.K.numpy())
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda d: d.update(world_to_camera=np.eye(4).tolist()), "both world_to_camera and camera_to_world"),
+    (lambda d: d.update(convention="directx"), "'opencv' or 'opengl'"),
+    (lambda d: d.update(camera_to_world=np.diag([1.0, 1.0, -1.0, 1.0]).tolist()), "camera_to_world must be rigid"),
+    (lambda d: d.pop("camera_to_world"), "lacks world_to_camera or camera_to_world"),
+])
+def test_bad_camera_descriptions_are_one_line_errors(tmp_path, camera, change, message):
+    described = _described(camera, "camera_to_world", "opengl")
+    change(described)
+    (tmp_path / "c.json").write_text(json.dumps(described))
+    with pytest.raises(StatfitError, match=message):
+        read_camera(tmp_path / "c.json")
+
+
 def write_channels(path, channels):
     with OpenEXR.File({"type": OpenEXR.scanlineimage}, channels) as exr:
         exr.write(str(path))

@@ -15,6 +15,8 @@ import torch
 from statfit.errors import StatfitError
 
 _RIGID_TOL = 1e-6
+CONVENTIONS = ("opencv", "opengl")
+POSE_KEYS = ("world_to_camera", "camera_to_world")
 # The most pixels a camera's image may have (8192²): a render of more (a splat render at 20000² asked
 # for 4.8 GB a buffer) exhausts a workstation's memory before it could be written.
 MAX_CAMERA_PIXELS = 1 << 26
@@ -133,13 +135,31 @@ class Camera:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Camera:
-        """Inverse of :meth:`to_dict`; raises :class:`StatfitError` on missing keys or another convention."""
+        """Inverse of :meth:`to_dict`, and what other tools write: the pose as ``world_to_camera`` or
+        its inverse ``camera_to_world`` (NeRF's and Blender's), in the ``convention`` 'opencv' (x right,
+        y down, z forward) or 'opengl' (x right, y up, z towards the viewer: the camera looks down its
+        −z); ``K`` is the pixel matrix either way. Raises :class:`StatfitError` on missing keys, both
+        poses or another convention."""
         if not isinstance(data, dict):
             raise StatfitError(f"camera description must be a JSON object, got {type(data).__name__}")
-        missing = [key for key in ("width", "height", "K", "world_to_camera") if key not in data]
+        poses = [key for key in POSE_KEYS if key in data]
+        missing = [key for key in ("width", "height", "K") if key not in data] + (
+            [" or ".join(POSE_KEYS)] if not poses else [])
         if missing:
             raise StatfitError(f"camera description lacks {', '.join(missing)}")
+        if len(poses) > 1:
+            raise StatfitError("camera description has both world_to_camera and camera_to_world: give one")
         convention = data.get("convention", "opencv")
-        if convention != "opencv":
-            raise StatfitError(f"camera convention must be 'opencv', got {convention!r}")
-        return cls(data["width"], data["height"], data["K"], data["world_to_camera"])
+        if convention not in CONVENTIONS:
+            raise StatfitError(f"camera convention must be 'opencv' or 'opengl', got {convention!r}")
+        pose = _matrix(data[poses[0]], (4, 4), poses[0])
+        if poses[0] == "camera_to_world":
+            rotation = pose[:3, :3]
+            if (not np.allclose(rotation @ rotation.T, np.eye(3), atol=_RIGID_TOL) or np.linalg.det(rotation) < 0
+                    or not np.allclose(pose[3], [0.0, 0.0, 0.0, 1.0], atol=_RIGID_TOL)):
+                raise StatfitError("camera camera_to_world must be rigid: a rotation (orthonormal, det +1) and a "
+                                   "translation, with bottom row (0, 0, 0, 1)")
+            pose = np.block([[rotation.T, -rotation.T @ pose[:3, 3:]], [pose[3:]]])
+        if convention == "opengl":
+            pose = np.diag([1.0, -1.0, -1.0, 1.0]) @ pose
+        return cls(data["width"], data["height"], data["K"], pose)
