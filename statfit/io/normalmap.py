@@ -5,11 +5,11 @@ EXR channels R, G, B hold a unit normal per pixel and A the coverage mask (1 for
 background); half or float. Without A, pixels with a zero-length normal are background. An EXR
 holding (n + 1) / 2 per channel, as a PNG does (some bakers and converters write float images so),
 is read as a PNG is, with a warning: its foreground values all lie in [0, 1], they decode to unit
-normals and are not unit themselves (no map of unit normals is all three). A camera
-may travel in the header as the standard ``worldToCamera`` attribute (4×4) plus a ``K`` (3×3).
+normals and are not unit themselves (no map of unit normals is all three). A camera may travel in
+the header as the standard ``worldToCamera`` attribute (4×4) plus a ``K`` (3×3).
 
-A PNG (8- or 16-bit, :func:`statfit.io.image.read_image`) holds (n + 1) / 2 per channel, the way normal
-estimators and bakers save normal maps; a pixel is foreground where its alpha (if any) is over
+A PNG (8- or 16-bit, :func:`statfit.io.image.read_image`) holds (n + 1) / 2 per channel, the way
+normal estimators and bakers save normal maps; a pixel is foreground where its alpha (if any) is over
 half and its decoded normal is within ``PNG_UNIT_TOLERANCE`` of unit length: black and white
 backgrounds decode to length √3, mid-grey to 0, and 8-bit rounding moves a true normal's length by
 less than 0.02. A PNG carries no camera (``--camera``).

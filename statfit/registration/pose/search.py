@@ -117,8 +117,8 @@ class PoseEstimate:
     first modes' refinement) of the best pose and ``runner_up`` that of the best pose ≥
     DISTINCT_DEGREES from it; ``matched`` the share of scan points within POLISH_TOLERANCE (with
     agreeing normals) of the polished fit; ``units`` the scan's unit relative to the model's (a
-    power of ten, or one over INCH: inches against a metric model); ``coefficients`` (K,) the polished fit's shape,
-    in standard deviations of the model's modes."""
+    power of ten, or one over INCH: inches against a metric model); ``coefficients`` (K,) the
+    polished fit's shape, in standard deviations of the model's modes."""
 
     transform: Similarity
     score: float
@@ -247,9 +247,9 @@ def landmark_units(scale: float) -> float:
 def refine_pose(model: StatModel, scan: Scan, start: Similarity, seed: int = 0) -> PoseEstimate:
     """``start`` (model → scan, e.g. placed by landmarks) polished like :func:`estimate_pose`'s
     best pose: a rigid pose and every coefficient by Gauss–Newton on the scan, the scale snapped to
-    the unit nearest ``start``'s (:func:`landmark_units`; the person's size is the modes' to explain). Landmarks on
-    part of a face tilt their similarity by degrees and scale it by ±10%, which no fit of the
-    model's modes can undo (docs/studies.md §15: half a face, 10° and 20 mm held-out error). The
+    the unit nearest ``start``'s (:func:`landmark_units`; the person's size is the modes' to
+    explain). Landmarks on part of a face tilt their similarity by degrees and scale it by ±10%,
+    which no fit of the model's modes can undo (docs/studies.md §15: half a face, 10° and 20 mm held-out error). The
     estimate's ``score`` is the polished pose's and ``runner_up`` 1 (no other pose is searched)."""
     frame = model.frame
     centroid = scan.points.mean(axis=0)
