@@ -109,20 +109,28 @@ def test_a_map_read_in_another_frame_than_its_own_is_refused_naming_its_own(norm
     assert not (tmp_path / "f.ply").exists()
 
 
-def test_an_opengl_camera_to_world_fits_as_statfits_own_camera(normal_files, tmp_path, capsys):
-    """A camera as NeRF and Blender describe it (camera-to-world, OpenGL axes) gives the fit that
-    statfit's own JSON of the same camera gives."""
+def test_a_blender_render_and_camera_fit_as_statfits_own_files(normal_files, tmp_path, capsys):
+    """What a Blender user brings: a multilayer EXR whose normal pass is '<layer>.Normal.X/Y/Z'
+    (world space, the coverage in 'Combined.A', no camera in it) and the camera as its matrix_world
+    (camera-to-world, OpenGL axes): the fit of statfit's own map and camera."""
+    from statfit.io.exr import write_exr
+
     exr, camera, _ = normal_files
-    own = read_camera(camera)
-    opengl = np.diag([1.0, -1.0, -1.0, 1.0]) @ own.world_to_camera.numpy()
-    (tmp_path / "gl.json").write_text(json.dumps({"width": own.width, "height": own.height, "K": own.K.tolist(),
-                                                  "camera_to_world": np.linalg.inv(opengl).tolist(),
-                                                  "convention": "opengl"}))
+    normal_map, own = read_normal_map(exr), read_camera(camera)
+    channels = {f"ViewLayer.Normal.{axis}": normal_map.normals[..., i] for i, axis in enumerate("XYZ")}
+    channels |= {"ViewLayer.Combined.A": normal_map.mask.astype(np.float32),
+                 "ViewLayer.Depth.Z": np.where(normal_map.mask, 5.0, 1e10).astype(np.float32)}
+    write_exr(tmp_path / "render.exr", channels)
+    matrix_world = np.linalg.inv(np.diag([1.0, -1.0, -1.0, 1.0]) @ own.world_to_camera.numpy())
+    (tmp_path / "blender.json").write_text(json.dumps({"width": own.width, "height": own.height, "K": own.K.tolist(),
+                                                       "camera_to_world": matrix_world.tolist(),
+                                                       "convention": "opengl"}))
     fits = []
-    for name in (camera, tmp_path / "gl.json"):
-        out = tmp_path / f"{Path(name).stem}.ply"
-        assert run(["render", str(exr), "--camera", str(name), "--align", "none", "--out", str(out), *FAST],
-                   capsys)[0] == 0
+    for source, pinhole in ((exr, camera), (tmp_path / "render.exr", tmp_path / "blender.json")):
+        out = tmp_path / f"{Path(pinhole).stem}.ply"
+        code, _, err = run(["render", str(source), "--camera", str(pinhole), "--align", "none", "--out", str(out),
+                            *FAST], capsys)
+        assert code == 0, err
         fits.append(trimesh.load(out, process=False).vertices)
     np.testing.assert_allclose(fits[1], fits[0], atol=1e-6 * np.ptp(fits[0], axis=0).max())
 

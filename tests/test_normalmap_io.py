@@ -275,3 +275,20 @@ def test_render_fits_an_encoded_exr_as_its_unit_normals_and_says_so(tmp_path, ca
     assert "decode as (n + 1) / 2" in fits[1][1] and "decode" not in fits[0][1]
     radius = np.sqrt(((fits[0][0] - fits[0][0].mean(axis=0)) ** 2).sum(axis=1).mean())
     assert np.linalg.norm(fits[1][0] - fits[0][0], axis=1).mean() < 1e-3 * radius
+
+
+def test_a_renders_normal_pass_is_read_as_blender_names_it(tmp_path, normal_map):
+    """A multilayer EXR as Blender writes it: the normals from '<layer>.Normal.X/Y/Z', the coverage
+    from the layer's 'Combined.A'; the other passes left alone."""
+    normals, mask = normal_map
+    layer = "ViewLayer."
+    channels = {f"{layer}Combined.{c}": np.full(mask.shape, 0.3, np.float32) for c in "RGB"}
+    channels[f"{layer}Combined.A"] = mask.astype(np.float32)
+    channels[f"{layer}Depth.Z"] = np.full(mask.shape, 7.0, np.float32)
+    channels.update({f"{layer}Normal.{axis}": np.ascontiguousarray(normals[..., i]) for i, axis in enumerate("XYZ")})
+    loaded = read_normal_map(write_channels(tmp_path / "render.exr", channels))
+    np.testing.assert_array_equal(loaded.mask, mask)
+    np.testing.assert_allclose(loaded.normals[mask], normals[mask], atol=1e-6)
+    channels.update({f"Other.Normal.{axis}": np.ascontiguousarray(normals[..., i]) for i, axis in enumerate("XYZ")})
+    with pytest.raises(StatfitError, match="nor a render's Normal.X/Y/Z pass"):   # two: which?
+        read_normal_map(write_channels(tmp_path / "two.exr", channels))

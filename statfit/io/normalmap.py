@@ -2,7 +2,8 @@
 and out.
 
 EXR channels R, G, B hold a unit normal per pixel and A the coverage mask (1 foreground, 0
-background); half or float. Without A, pixels with a zero-length normal are background. An EXR
+background); half or float. A render's normal pass is read too, as Blender's multilayer EXRs name
+it: '<view layer>.Normal.X', '.Y', '.Z' (world space), the coverage its layer's 'Combined.A'. Without A, pixels with a zero-length normal are background. An EXR
 holding (n + 1) / 2 per channel, as a PNG does (some bakers and converters write float images so),
 is read as a PNG is, with a warning: its foreground values all lie in [0, 1], they decode to unit
 normals and are not unit themselves (no map of unit normals is all three). A camera may travel in
@@ -44,12 +45,14 @@ def read_normal_map(path: str | Path) -> NormalMap:
     if path.suffix.lower() == ".png" and not is_exr(path):
         return _read_png(path)
     header, channels = read_exr(path, "normal map")
-    missing = [c for c in "RGB" if c not in channels]
-    if missing:
-        raise StatfitError(f"{path} has no {'/'.join(missing)} channel(s); it has {', '.join(sorted(channels)) or 'none'}")
-    normals = np.stack([channels[c] for c in "RGB"], axis=-1)
+    if (names := _normal_channels(channels)) is None:
+        missing = [c for c in "RGB" if c not in channels]
+        raise StatfitError(f"{path} has no {'/'.join(missing)} channel(s) nor a render's Normal.X/Y/Z pass; it has "
+                           f"{', '.join(sorted(channels)) or 'none'}")
+    xyz, alpha = names
+    normals = np.stack([channels[c] for c in xyz], axis=-1)
     length = np.linalg.norm(normals, axis=-1)
-    mask = channels["A"] > 0.5 if "A" in channels else length > 0
+    mask = channels[alpha] > 0.5 if alpha is not None else length > 0
     if (decoded := _decoded_colour(normals, mask)) is not None:
         warnings.warn(f"{path}: its values lie in [0, 1] and decode as (n + 1) / 2 to unit normals: read as a "
                       "PNG normal map's are (an EXR normal map holds the unit normals themselves)", StatfitWarning,
@@ -57,6 +60,22 @@ def read_normal_map(path: str | Path) -> NormalMap:
         normals, length, unit = decoded
         mask = mask & unit
     return NormalMap(*_validated(normals, length, mask, path), camera=_header_camera(header, normals.shape))
+
+
+def _normal_channels(channels: dict[str, np.ndarray]) -> tuple[list[str], str | None] | None:
+    """The names of the channels holding the normals and the coverage (None: none): R, G, B (A); or
+    a render's normal pass as Blender's multilayer EXRs name it, '<view layer>.Normal.X', '.Y', '.Z',
+    its coverage the same layer's 'Combined.A' (or a plain A). None where neither, or several
+    layers, are there."""
+    if all(c in channels for c in "RGB"):
+        return list("RGB"), "A" if "A" in channels else None
+    layers = [name[: -len("Normal.X")] for name in channels
+              if name.endswith("Normal.X") and all(name[:-1] + axis in channels for axis in "YZ")]
+    if len(layers) != 1:
+        return None
+    layer = layers[0]
+    alpha = next((name for name in (f"{layer}Combined.A", "A") if name in channels), None)
+    return [f"{layer}Normal.{axis}" for axis in "XYZ"], alpha
 
 
 def _decoded_colour(normals: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
