@@ -27,7 +27,8 @@ def evaluate(
                                  "ground truth's triangles seen on its mask (needs a camera).", show_default=False),
     camera_path: Path = typer.Option(None, "--camera", help="Camera JSON of --normals (default: the EXR header's).",
                                      show_default=False),
-    region: str = typer.Option(None, "--region", metavar="<name>", help="Report only the vertices of the model's region NAME "
+    region: str = typer.Option(None, "--region", metavar="<name>",
+                               help="Report only the vertices of the model's region NAME "
                                "(needs --model).", show_default=False),
     model_path: Path = typer.Option(None, "--model", "-m", help="The model the fit came from (any format "
                                     "--model takes elsewhere), for --region.", show_default=False),

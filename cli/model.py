@@ -53,7 +53,8 @@ def import_(
                           "ICT: identity meshes; BFM: principal components). Default: all.", show_default=False),
     expressions: bool = typer.Option(False, "--expressions", help="Also keep the expression directions "
                                      "(FLAME, SMPL-X: shapedirs after the 300 identity ones; BFM: the expression model)."),
-    region: str = typer.Option(None, "--region", metavar="<name>", help="ICT-FaceKit only: geometries to keep, joined by '+' "
+    region: str = typer.Option(None, "--region", metavar="<name>",
+                               help="ICT-FaceKit only: geometries to keep, joined by '+' "
                                "(face, head, mouth_socket, eye_socket_left, ..., teeth, eyeball_left, ...). "
                                "Default: face+head. Each is stored as region_<name>.", show_default=False),
     masks: Path = typer.Option(None, "--masks", help="Named vertex masks to store as regions (region_<name>), "
@@ -169,7 +170,8 @@ def build_makehuman(
 def cut(
     model_path: Path = typer.Argument(..., help=f"The model: {ANY_MODEL}.", show_default=False),
     out: Path = typer.Option(..., "--out", "-o", help="Model npz to write.", show_default=False),
-    region: str = typer.Option(None, "--region", metavar="<name>", help="Keep only this region of the model (see `statfit model "
+    region: str = typer.Option(None, "--region", metavar="<name>",
+                               help="Keep only this region of the model (see `statfit model "
                                "info`), e.g. face: a face-mask model cut from a head.", show_default=False),
     vertices: int = typer.Option(None, "--vertices", help="Decimate to about this many vertices (each kept vertex "
                                  "keeps its place and modes; landmarks move to the nearest kept vertex).",
@@ -213,14 +215,16 @@ def sample(
     ctx: typer.Context,
     model_path: Path = typer.Argument(None, help=f"The model: {ANY_MODEL}. Default: the embedded synthetic head.",
                                       show_default=False),
-    out: str = typer.Option(..., "--out", "-o", metavar="<path>", help="Mesh to write (.ply or .obj; '-' for PLY on stdout).",
+    out: str = typer.Option(..., "--out", "-o", metavar="<path>",
+                            help="Mesh to write (.ply or .obj; '-' for PLY on stdout).",
                             show_default=False),
     sigma: float = typer.Option(1.0, help="Coefficients ~ N(0, sigma²) in standard deviations; 0 gives the template.",
                                callback=within(0, 100)),
     seed: int = SeedOption,
     params: Path = typer.Option(None, "--params", help="Instead of a random shape (no --sigma, --seed), the "
                                 "shape a params file codes (`register/render/splat --params`): the model at its "
-                                "coefficients, posed by its similarity, in the data's frame. The model (and --k) must be the fit's.",
+                                "coefficients, posed by its similarity, in the data's frame. The model (and --k) "
+                                "must be the fit's.",
                                 show_default=False),
     k: int = typer.Option(None, "--k", help="Use only the first K modes (as the fit did).", show_default=False),
 ) -> None:

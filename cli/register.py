@@ -24,7 +24,8 @@ def register(
     method: str = MethodOption,
     preset: str = PresetOption,
     fallback: bool = FallbackOption,
-    out: str = typer.Option(None, "--out", "-o", metavar="<path>", help="Fitted mesh (.ply or .obj; '-' for PLY on stdout). "
+    out: str = typer.Option(None, "--out", "-o", metavar="<path>",
+                            help="Fitted mesh (.ply or .obj; '-' for PLY on stdout). "
                             "Default: <scan>_fit.ply here.", show_default=False),
     log: Path = LogOption,
     preview: Path = typer.Option(None, help="PNG: the scan's points over the fit, and the fit from the front, turned "
@@ -33,10 +34,11 @@ def register(
                                        "fit show: where it guessed — data_distance (to the nearest scan point), "
                                        "off_span or observed (the fitted PLY's fields, in colour) — or normals."),
     params: Path = ParamsOption,
-    align: str = typer.Option("auto", help="Pre-alignment. auto: finds the scan's pose, scale and units (mm, cm, m, in) "
-                              "without landmarks, and leaves a scan already on the model where it is; none: the scan "
+    align: str = typer.Option("auto", help="Pre-alignment. auto: finds the scan's pose, scale and units (mm, cm, m, "
+                              "in) without landmarks, and leaves a scan already on the model where it is; none: the scan "
                               "lies in the model's frame; rigid/similarity: ICP from the centroids."),
-    region: str = typer.Option(None, "--region", metavar="<name>", help="Fit only the model's region NAME (a region_NAME array in "
+    region: str = typer.Option(None, "--region", metavar="<name>",
+                               help="Fit only the model's region NAME (a region_NAME array in "
                                "the npz, e.g. face): scan points closest to other parts are ignored; the "
                                "rest of the mesh follows the model's prior.", show_default=False),
     landmarks: Path = typer.Option(None, "--landmarks", help="The scan's landmarks, one per model landmark in the "

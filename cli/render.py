@@ -17,11 +17,14 @@ from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, Json
 
 def render(
     normal_map_path: Path = typer.Argument(..., metavar="NORMALS.EXR", help="Normal map: OpenEXR with R, G, B = unit "
-                                           "normal and A = coverage, or an 8- or 16-bit PNG holding (n + 1) / 2 (background: alpha, "
-                                           "or black, white or grey; give --camera) (docs/formats.md).",
+                                           "normal and A = coverage (or a render's Normal.X/Y/Z pass), or an 8- or "
+                                           "16-bit PNG holding (n + 1) / 2 (background: alpha, or black, white or grey; "
+                                           "give --camera) (docs/formats.md).",
                                            show_default=False),
-    camera_path: Path = typer.Option(None, "--camera", "-c", help="Camera JSON (width, height, K, world_to_camera). "
-                                     "Default: the camera in the EXR header.", show_default=False),
+    camera_path: Path = typer.Option(None, "--camera", "-c", help="Camera JSON (width, height, K, world_to_camera; "
+                                     "or camera_to_world, as NeRF and Blender give it, with \"convention\": "
+                                     "\"opengl\"; docs/formats.md). Default: the camera in the EXR header.",
+                                     show_default=False),
     model_path: Path = ModelOption,
     k: int = KOption,
     method: str = MethodOption,
@@ -48,7 +51,8 @@ def render(
     silhouette_weight: float = typer.Option(SILHOUETTE_WEIGHT, help="Weight of the silhouette term (0: off).",
                                             callback=within(0, 1e6)),
     silhouette: str = SilhouetteOption,
-    region: str = typer.Option(None, "--region", metavar="<name>", help="Fit only the model's region NAME (e.g. face): after the "
+    region: str = typer.Option(None, "--region", metavar="<name>",
+                               help="Fit only the model's region NAME (e.g. face): after the "
                                "alignment, only pixels showing the region's triangles count and the silhouette is "
                                "not used; the rest of the mesh follows the model's prior.", show_default=False),
     device: str = DeviceOption,

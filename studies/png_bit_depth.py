@@ -1,11 +1,12 @@
 """What a normal map's bit depth costs a render fit: the rendering study's four ICT maps (512²,
 expressions outside the model: docs/studies.md §5) and four people of ICT's model (samples, seeds
-1–4, σ 1, yaw 25°, pitch 5°, 512²) fitted by the render default from their float normals and from the same normals rounded as an 8-bit and a 16-bit PNG stores them ((n + 1) / 2,
-rounded, decoded, made unit again). Only the rounding differs: the maps go to ``reconstruct`` as
-arrays (that statfit's PNG reader gives these values is tests/test_png16.py's and
-tests/test_normalmap_io.py's claim). Error: mean vertex distance to the ground truth / its RMS
-radius (``cases.relative_errors``), all, observed and unobserved vertices. One thread a fit, two fits
-at a time (~7 min); rows in ``studies/results/png_bit_depth.json``.
+1–4, σ 1, yaw 25°, pitch 5°, 512²) fitted by the render default from their float normals and from
+the same normals rounded as an 8-bit and a 16-bit PNG stores them ((n + 1) / 2, rounded, decoded,
+made unit again). Only the rounding differs: the maps go to ``reconstruct`` as arrays (that
+statfit's PNG reader gives these values is tests/test_png16.py's and tests/test_normalmap_io.py's
+claim). Error: mean vertex distance to the ground truth / its RMS radius
+(``cases.relative_errors``), all, observed and unobserved vertices. One thread a fit, two fits at a
+time (~7 min); rows in ``studies/results/png_bit_depth.json``.
 
     python studies/png_bit_depth.py [--report]
 """

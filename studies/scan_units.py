@@ -110,7 +110,8 @@ def report(rows: list[dict]) -> str:
     lines = ["Part 1: log10(scan RMS radius / model RMS radius / true unit), metric scans, seeds 0–2, clutter "
              + ", ".join(map(str, CLUTTER)), "", "| model | people | least | most |", "|---|---|---|---|",
              *ratio_places(), "", "Part 2: the unit the pose search finds", "",
-             "| model | people | units | scans | unit right | refused | own people: largest angle ° | s a search (mean) |",
+             "| model | people | units | scans | unit right | refused | own people: largest angle ° "
+             "| s a search (mean) |",
              "|---|---|---|---|---|---|---|---|"]
     for model in FAMILIES:
         for people in (model, OTHER_PEOPLE[model]):
@@ -119,11 +120,10 @@ def report(rows: list[dict]) -> str:
                 if not mine:
                     continue
                 angles = [r["degrees"] for r in mine if "degrees" in r]
-                lines.append(f"| {model} | {people} | {units} | {len(mine)} | {sum(r.get('right', False) for r in mine)} "
-                             f"| {sum('refused' in r for r in mine)} | {max(angles):.1f} |" if angles else
-                             f"| {model} | {people} | {units} | {len(mine)} | {sum(r.get('right', False) for r in mine)} "
-                             f"| {sum('refused' in r for r in mine)} | – |")
-                lines[-1] += f" {sum(r['seconds'] for r in mine) / len(mine):.2f} |"
+                right, refused = sum(r.get("right", False) for r in mine), sum("refused" in r for r in mine)
+                lines.append(f"| {model} | {people} | {units} | {len(mine)} | {right} | {refused} | "
+                             f"{f'{max(angles):.1f}' if angles else '–'} | "
+                             f"{sum(r['seconds'] for r in mine) / len(mine):.2f} |")
     return "\n".join(lines)
 
 

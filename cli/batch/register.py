@@ -31,7 +31,8 @@ def batch_register(
                                 "<output stem>.params.json (see `statfit register --help`, docs/formats.md)."),
     align: str = typer.Option("auto", help="Pre-alignment of each scan: auto (pose, scale and units found), none, "
                               "rigid or similarity (see `statfit register --help`)."),
-    region: str = typer.Option(None, "--region", metavar="<name>", help="Fit only the model's region NAME (see `statfit register "
+    region: str = typer.Option(None, "--region", metavar="<name>",
+                               help="Fit only the model's region NAME (see `statfit register "
                                "--help`).", show_default=False),
     refresh: int = typer.Option(10, help="Recompute closest surface points every N iterations.",
                                 callback=within(1, 100_000)),

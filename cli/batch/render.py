@@ -47,7 +47,8 @@ def batch_render(
     silhouette_weight: float = typer.Option(SILHOUETTE_WEIGHT, help="Weight of the silhouette term (0: off).",
                                             callback=within(0, 1e6)),
     silhouette: str = SilhouetteOption,
-    region: str = typer.Option(None, "--region", metavar="<name>", help="Fit only the model's region NAME.", show_default=False),
+    region: str = typer.Option(None, "--region", metavar="<name>",
+                               help="Fit only the model's region NAME.", show_default=False),
     device: str = DeviceOption,
     threads: int = BatchThreadsOption,
     together: int = typer.Option(None, "--together", help="Maps each worker fits in one program: each its own "

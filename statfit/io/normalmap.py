@@ -3,11 +3,12 @@ and out.
 
 EXR channels R, G, B hold a unit normal per pixel and A the coverage mask (1 foreground, 0
 background); half or float. A render's normal pass is read too, as Blender's multilayer EXRs name
-it: '<view layer>.Normal.X', '.Y', '.Z' (world space), the coverage its layer's 'Combined.A'. Without A, pixels with a zero-length normal are background. An EXR
-holding (n + 1) / 2 per channel, as a PNG does (some bakers and converters write float images so),
-is read as a PNG is, with a warning: its foreground values all lie in [0, 1], they decode to unit
-normals and are not unit themselves (no map of unit normals is all three). A camera may travel in
-the header as the standard ``worldToCamera`` attribute (4×4) plus a ``K`` (3×3).
+it: '<view layer>.Normal.X', '.Y', '.Z' (world space), the coverage its layer's 'Combined.A'.
+Without A, pixels with a zero-length normal are background. An EXR holding (n + 1) / 2 per channel,
+as a PNG does (some bakers and converters write float images so), is read as a PNG is, with a
+warning: its foreground values all lie in [0, 1], they decode to unit normals and are not unit
+themselves (no map of unit normals is all three). A camera may travel in the header as the standard
+``worldToCamera`` attribute (4×4) plus a ``K`` (3×3).
 
 A PNG (8- or 16-bit, :func:`statfit.io.image.read_image`) holds (n + 1) / 2 per channel, the way
 normal estimators and bakers save normal maps; a pixel is foreground where its alpha (if any) is over
