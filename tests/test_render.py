@@ -102,7 +102,7 @@ def test_bad_camera_raises(change, message):
 def test_bad_camera_description_raises():
     good = Camera.look_at([0.0, 0.0, 5.0], [0.0, 0.0, 0.0], [0.0, 1.0, 0.0], 40.0, 32, 32).to_dict()
     with pytest.raises(StatfitError, match="convention"):
-        Camera.from_dict(good | {"convention": "opengl"})
+        Camera.from_dict(good | {"convention": "directx"})
     with pytest.raises(StatfitError, match="lacks K"):
         Camera.from_dict({key: value for key, value in good.items() if key != "K"})
     with pytest.raises(StatfitError, match="coincide"):
