@@ -34,8 +34,8 @@ def register(
                                        "fit show: where it guessed — data_distance (to the nearest scan point), "
                                        "off_span or observed (the fitted PLY's fields, in colour) — or normals."),
     params: Path = ParamsOption,
-    align: str = typer.Option("auto", help="Pre-alignment. auto: finds the scan's pose, scale and units (mm, cm, m, "
-                              "in) without landmarks, and leaves a scan already on the model where it is; none: the scan "
+    align: str = typer.Option("auto", help="Pre-alignment. auto: finds the scan's pose, scale and units (mm, cm, m; "
+                              "inches with --landmarks) without landmarks, and leaves a scan already on the model where it is; none: the scan "
                               "lies in the model's frame; rigid/similarity: ICP from the centroids."),
     region: str = typer.Option(None, "--region", metavar="<name>",
                                help="Fit only the model's region NAME (a region_NAME array in "
@@ -68,8 +68,8 @@ def register(
 ) -> None:
     """Non-rigid registration: deform the model's template onto a partial scan.
 
-    The scan may come in any pose and in mm, cm, m or inches (found by --align auto); a mesh scan's
-    points are drawn by area. The output mesh has the template's topology and vertex order, in the
+    The scan may come in any pose and in mm, cm or m (found by --align auto; inches with
+    --landmarks); a mesh scan's points are drawn by area. The output mesh has the template's topology and vertex order, in the
     scan's frame. Example:
 
         \b

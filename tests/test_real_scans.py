@@ -116,40 +116,35 @@ def test_synth_scan_realistic_writes_a_mesh_its_truth_and_landmarks(tmp_path):
 
 
 @pytest.mark.parametrize("unit", [1.0, 10.0, 1000.0, 0.1 / 2.54, 1 / 2.54, 100 / 2.54])
-def test_the_unit_is_read_from_the_ratio_of_sizes(unit):
-    """A scan's size over the model's, a person's (docs/studies.md §39: 10^-0.11 to 10^0.36 of the
-    unit; in inches up to 10^0.28, where the metric range begins to overlap), gives the unit; a
-    landmark similarity's scale (a person's size within ±10%) too."""
-    from statfit.registration.pose.search import landmark_units, scan_units
+def test_landmarks_give_the_unit_inches_too(unit):
+    """A landmark similarity's scale (a person's size within ±10%, and more) gives the unit: a power
+    of ten, or one over 2.54 (inches)."""
+    from statfit.registration.pose.search import landmark_units
 
-    largest = 10 ** 0.36 if unit in (1.0, 10.0, 1000.0) else 10 ** 0.28
-    for size in (10 ** -0.11, 0.9, 1.0, 1.3, largest):
-        assert scan_units(unit * size) == pytest.approx(unit, rel=1e-12), (unit, size)
-    for size in (0.9, 1.0, 1.1):
+    for size in (0.8, 0.9, 1.0, 1.1, 1.25):
         assert landmark_units(unit * size) == pytest.approx(unit, rel=1e-12), (unit, size)
 
 
 def test_a_scan_in_inches_fits_as_the_same_scan_in_millimetres(tmp_path):
     """Scanner software exports inches too: the same person's realistic scan in mm and in inches,
-    registered without landmarks and with them, fits the same surface (the inch fit × 25.4 on the
-    mm fit), and the summary names the units found."""
+    registered with landmarks, fits the same surface (the inch fit × 25.4 on the mm fit), and the
+    summary names the units found. (Without landmarks the size cannot tell an inch scan from a
+    partial metric one: docs/studies.md §39.)"""
     fits, factors = {}, {}
     for units in ("mm", "in"):
         scan, marks = tmp_path / f"scan_{units}.ply", tmp_path / f"marks_{units}.txt"
         code, err = run_cli(["synth", "scan", "--realistic", "--seed", "7", "--units", units, "--out", str(scan),
                              "--landmarks-out", str(marks)])
         assert code == 0, err
-        for how in ("auto", "landmarks"):
-            out, log = tmp_path / f"fit_{units}_{how}.ply", tmp_path / f"fit_{units}_{how}.jsonl"
-            extra = ["--landmarks", str(marks)] if how == "landmarks" else []
-            code, err = run_cli(["register", str(scan), "--out", str(out), "--log", str(log), "-q", *extra])
-            assert code == 0, err
-            fits[units, how] = read_mesh(out)[0] * (25.4 if units == "in" else 1.0)
-            factors[units, how] = json.loads(log.read_text().splitlines()[-1])["pose"]["units_factor"]
-    for how in ("auto", "landmarks"):
-        assert factors["in", how] == pytest.approx(factors["mm", how] / 25.4, rel=1e-12), factors
-        radius = np.sqrt(((fits["mm", how] - fits["mm", how].mean(axis=0)) ** 2).sum(axis=1).mean())
-        assert np.linalg.norm(fits["in", how] - fits["mm", how], axis=1).mean() < 0.01 * radius
+        out, log = tmp_path / f"fit_{units}.ply", tmp_path / f"fit_{units}.jsonl"
+        code, err = run_cli(["register", str(scan), "--out", str(out), "--log", str(log), "-q",
+                             "--landmarks", str(marks)])
+        assert code == 0, err
+        fits[units] = read_mesh(out)[0] * (25.4 if units == "in" else 1.0)
+        factors[units] = json.loads(log.read_text().splitlines()[-1])["pose"]["units_factor"]
+    assert factors["in"] == pytest.approx(factors["mm"] / 25.4, rel=1e-12), factors
+    radius = np.sqrt(((fits["mm"] - fits["mm"].mean(axis=0)) ** 2).sum(axis=1).mean())
+    assert np.linalg.norm(fits["in"] - fits["mm"], axis=1).mean() < 0.01 * radius
 
 
 def test_mesh_scans_are_sampled_by_area_not_by_vertex_density():
@@ -205,7 +200,7 @@ def test_points_off_the_template_leave_the_data_term():
     assert clean._keep.tolist() == [True, True, True, False, True, True]
 
 
-@pytest.mark.parametrize("seed,units", [(0, "mm"), (1, "cm"), (2, "m"), (3, "mm"), (4, "in"), (5, "in")])
+@pytest.mark.parametrize("seed,units", [(0, "mm"), (1, "cm"), (2, "m"), (3, "mm")])
 def test_pose_units_and_offset_are_found_without_landmarks(embedded_model, seed, units):
     model = embedded_model
     rng = np.random.default_rng(seed)
@@ -213,8 +208,7 @@ def test_pose_units_and_offset_are_found_without_landmarks(embedded_model, seed,
     made = realistic_scan(shape, model.faces, rng, yaw_deg=rng.uniform(-40, 40), clutter=0.5, units=units)
     estimate = estimate_pose(model, Scan.from_mesh(made.vertices, made.faces))
     assert _angle(estimate.transform.rotation, made.transform.rotation) < 3.0
-    # the units, exactly (to the rounding of 1/2.54): the person's size is the modes'
-    assert estimate.transform.scale == pytest.approx(made.transform.scale, rel=1e-12)
+    assert estimate.transform.scale == made.transform.scale         # the units, exactly: size is the modes'
 
 
 def test_the_pose_searchs_candidates_on_threads_find_what_one_thread_finds(embedded_model, monkeypatch):

@@ -30,7 +30,7 @@ class Projection:
     similarity model → data; off_span: (N,) float64 distance of each fitted vertex from the
     model's span, model units (zero for a mesh the model makes, None when read from a file);
     units_factor: the unit the automatic alignment found between the data's units and the model's,
-    a power of ten or one over 2.54 (inches) (None: not searched)."""
+    a power of ten, or with landmarks one over 2.54 (inches) (None: not searched)."""
 
     coefficients: np.ndarray
     transform: Similarity

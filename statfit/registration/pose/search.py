@@ -4,10 +4,10 @@ Plain ICP from one start finds the nearest local fit, and a smooth head has many
 back to front, turned by 90°). So:
 
 1. **Units.** The scale between scan and model is snapped to the power of ten nearest the ratio of
-   their RMS radii (mm, cm, m all differ by one), or, where that ratio lies 10^0.42 to 10^0.88 times
-   a power of ten, to the power of ten over INCH nearest it (a scan in inches, which scanner
-   software exports too, against a metric model: :func:`scan_units`). Within a hypothesis the scale
-   stays in [1/SCALE_RANGE, SCALE_RANGE] of the unit (a person's size, not another unit).
+   their RMS radii (mm, cm, m all differ by one); within a hypothesis the scale stays in
+   [1/SCALE_RANGE, SCALE_RANGE] of that (a person's size, not another unit). A scan in inches is
+   placed only by landmarks (:func:`landmark_units`): a partial metric scan's size over the model's
+   reaches as far from a power of ten as an inch scan's (docs/studies.md §39).
 2. **Hypotheses.** The 60 rotations of the icosahedral group (every rotation is within ~38° of
    one), each placed so that the side of the model facing the scan's mean normal (the scanner's
    side) sits on the scan's centroid. Only poses that turn the model's face (+z, by the usual
@@ -73,11 +73,6 @@ from statfit.structures.scan import Scan
 
 SCALE_RANGE = 1.35
 INCH = 2.54                # centimetres: a scan in inches lies this far off a power of ten from a metric model
-# The decimal places of log10(scan radius / model radius) taken for inches. A metric scan's RMS
-# radius over its model's, in the scan's unit, lies 10^-0.11 to 10^0.36 times a power of ten, so an
-# inch scan's 10^0.49 to 10^0.96 times one (realistic scans of four families' people under each
-# family's model, clutter 0 to 2: docs/studies.md §39). Where the two overlap, metric wins.
-INCH_BAND = (0.42, 0.88)
 SUBSAMPLE = 300
 # Successive halving: after SCREEN_ROUNDS of ICP only the SCREENED best-scoring hypotheses go on to
 # the remaining rounds (the ICP of all 60 was a third of the alignment's time).
@@ -117,8 +112,8 @@ class PoseEstimate:
     first modes' refinement) of the best pose and ``runner_up`` that of the best pose ≥
     DISTINCT_DEGREES from it; ``matched`` the share of scan points within POLISH_TOLERANCE (with
     agreeing normals) of the polished fit; ``units`` the scan's unit relative to the model's (a
-    power of ten, or one over INCH: inches against a metric model); ``coefficients`` (K,) the
-    polished fit's shape, in standard deviations of the model's modes."""
+    power of ten; with landmarks, or one over INCH: inches against a metric model); ``coefficients``
+    (K,) the polished fit's shape, in standard deviations of the model's modes."""
 
     transform: Similarity
     score: float
@@ -140,15 +135,15 @@ class PoseEstimate:
 
 
 def estimate_pose(model: StatModel, scan: Scan, seed: int = 0, threads: int | None = None) -> PoseEstimate:
-    """The similarity that puts ``model`` onto ``scan`` (any rotation, offset and units: mm, cm, m
-    or inches), found without landmarks; raises StatfitError when no pose matches enough of the scan.
+    """The similarity that puts ``model`` onto ``scan`` (any rotation, offset and power-of-ten
+    units), found without landmarks; raises StatfitError when no pose matches enough of the scan.
     ``threads``: the most threads it may run on (None: the cores this process may use)."""
     frame = model.frame
     centroid = scan.points.mean(axis=0)
     radius = float(np.sqrt(((scan.points - centroid) ** 2).sum(axis=1).mean()))
     if radius <= 0:
         raise StatfitError("the scan's points all coincide")
-    units = scan_units(radius / frame.scale)
+    units = float(10.0 ** np.round(np.log10(radius / frame.scale)))
     points = (scan.points - centroid) / (units * frame.scale)
     rng = np.random.default_rng(seed)
     few = rng.choice(len(points), min(SUBSAMPLE, len(points)), replace=False)
@@ -226,15 +221,6 @@ def estimate_pose(model: StatModel, scan: Scan, seed: int = 0, threads: int | No
                         coefficients)
 
 
-def scan_units(ratio: float) -> float:
-    """The scan's unit relative to the model's from ``ratio``, the scan's RMS radius over the
-    model's (in their numbers): the power of ten over INCH nearest it where the ratio's decimal
-    place lies in INCH_BAND, else the power of ten nearest it."""
-    if INCH_BAND[0] <= float(np.log10(ratio) % 1.0) < INCH_BAND[1]:
-        return float(10.0 ** np.round(np.log10(ratio * INCH))) / INCH
-    return float(10.0 ** np.round(np.log10(ratio)))
-
-
 def landmark_units(scale: float) -> float:
     """The scan's unit relative to the model's, from the ``scale`` of a landmark similarity: the
     power of ten or power of ten over INCH nearest it (landmarks place a person's size within
@@ -249,7 +235,8 @@ def refine_pose(model: StatModel, scan: Scan, start: Similarity, seed: int = 0) 
     best pose: a rigid pose and every coefficient by Gauss–Newton on the scan, the scale snapped to
     the unit nearest ``start``'s (:func:`landmark_units`; the person's size is the modes' to
     explain). Landmarks on part of a face tilt their similarity by degrees and scale it by ±10%,
-    which no fit of the model's modes can undo (docs/studies.md §15: half a face, 10° and 20 mm held-out error). The
+    which no fit of the model's modes can undo (docs/studies.md §15: half a face, 10° and 20 mm
+    held-out error). The
     estimate's ``score`` is the polished pose's and ``runner_up`` 1 (no other pose is searched)."""
     frame = model.frame
     centroid = scan.points.mean(axis=0)
