@@ -35,7 +35,7 @@ def register(
                                        "off_span or observed (the fitted PLY's fields, in colour) — or normals."),
     params: Path = ParamsOption,
     align: str = typer.Option("auto", help="Pre-alignment. auto: finds the scan's pose, scale and units (mm, cm, m; "
-                              "inches with --landmarks) without landmarks, and leaves a scan already on the model where it is; none: the scan "
+                              "a scan in inches: give --landmarks) without landmarks, and leaves a scan already on the model where it is; none: the scan "
                               "lies in the model's frame; rigid/similarity: ICP from the centroids."),
     region: str = typer.Option(None, "--region", metavar="<name>",
                                help="Fit only the model's region NAME (a region_NAME array in "
