@@ -85,9 +85,7 @@ def _decoded_colour(normals: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, 
     values = normals[mask]
     if values.size == 0 or values.min() < -ENCODED_SLACK or values.max() > 1.0 + ENCODED_SLACK:
         return None
-    decoded = normals * 2.0 - 1.0
-    length = np.linalg.norm(decoded, axis=-1)
-    unit = np.abs(length - 1.0) < PNG_UNIT_TOLERANCE
+    decoded, length, unit = _decoded(normals)
     stored = np.linalg.norm(normals[mask & unit], axis=-1)
     # A grey background (0.5 each) decodes to length 0: not counted either way.
     if ((mask & unit).sum() < ENCODED_SHARE * (mask & (length > 0.5)).sum() or stored.size == 0
@@ -96,14 +94,20 @@ def _decoded_colour(normals: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, 
     return decoded, length, unit
 
 
+def _decoded(colours: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Colours (H, W, 3) holding (n + 1) / 2 decoded: the normals, their lengths and whether each
+    is unit within PNG_UNIT_TOLERANCE (H, W)."""
+    normals = colours * 2.0 - 1.0
+    length = np.linalg.norm(normals, axis=-1)
+    return normals, length, np.abs(length - 1.0) < PNG_UNIT_TOLERANCE
+
+
 def _read_png(path: Path) -> NormalMap:
     """A PNG normal map: (n + 1) / 2 per channel, coverage from alpha and the decoded length."""
     image = read_image(path)
     if image.shape[-1] < 3:
         raise StatfitError(f"{path}: a PNG normal map is RGB or RGBA, (n + 1) / 2 per channel; this one is grey")
-    normals = image[..., :3] * 2.0 - 1.0
-    length = np.linalg.norm(normals, axis=-1)
-    mask = np.abs(length - 1.0) < PNG_UNIT_TOLERANCE
+    normals, length, mask = _decoded(image[..., :3])
     if image.shape[-1] == 4:
         mask &= image[..., 3] > 0.5
     return NormalMap(*_validated(normals, length, mask, path))

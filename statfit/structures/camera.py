@@ -34,6 +34,16 @@ def _matrix(value: Any, shape: tuple[int, int], name: str) -> np.ndarray:
     return array
 
 
+def _rigid(pose: np.ndarray, name: str) -> np.ndarray:
+    """``pose`` (4, 4), refused unless a rotation (orthonormal, det +1) and a translation."""
+    rotation = pose[:3, :3]
+    if (not np.allclose(pose[3], [0.0, 0.0, 0.0, 1.0], atol=_RIGID_TOL)
+            or not np.allclose(rotation @ rotation.T, np.eye(3), atol=_RIGID_TOL) or np.linalg.det(rotation) < 0):
+        raise StatfitError(f"camera {name} must be rigid: a rotation (orthonormal, det +1) and a translation, with "
+                           "bottom row (0, 0, 0, 1)")
+    return pose
+
+
 @dataclass(frozen=True, eq=False)
 class Camera:
     """Image size, intrinsics ``K`` (3, 3) and the rigid ``world_to_camera`` transform (4, 4).
@@ -62,13 +72,7 @@ class Camera:
             raise StatfitError(f"camera K must have bottom row (0, 0, 1), got {K[2].tolist()}")
         if np.linalg.matrix_rank(K) < 3:
             raise StatfitError(f"camera K is singular: {K.tolist()}")
-        pose = _matrix(self.world_to_camera, (4, 4), "world_to_camera")
-        rotation = pose[:3, :3]
-        if (not np.allclose(pose[3], [0.0, 0.0, 0.0, 1.0], atol=_RIGID_TOL)
-                or not np.allclose(rotation @ rotation.T, np.eye(3), atol=_RIGID_TOL)
-                or np.linalg.det(rotation) < 0):
-            raise StatfitError("camera world_to_camera must be rigid: a rotation (orthonormal, det +1) "
-                               "and a translation, with bottom row (0, 0, 0, 1)")
+        pose = _rigid(_matrix(self.world_to_camera, (4, 4), "world_to_camera"), "world_to_camera")
         object.__setattr__(self, "K", torch.as_tensor(K))
         object.__setattr__(self, "world_to_camera", torch.as_tensor(pose))
 
@@ -154,11 +158,7 @@ class Camera:
             raise StatfitError(f"camera convention must be 'opencv' or 'opengl', got {convention!r}")
         pose = _matrix(data[poses[0]], (4, 4), poses[0])
         if poses[0] == "camera_to_world":
-            rotation = pose[:3, :3]
-            if (not np.allclose(rotation @ rotation.T, np.eye(3), atol=_RIGID_TOL) or np.linalg.det(rotation) < 0
-                    or not np.allclose(pose[3], [0.0, 0.0, 0.0, 1.0], atol=_RIGID_TOL)):
-                raise StatfitError("camera camera_to_world must be rigid: a rotation (orthonormal, det +1) and a "
-                                   "translation, with bottom row (0, 0, 0, 1)")
+            rotation = _rigid(pose, "camera_to_world")[:3, :3]
             pose = np.block([[rotation.T, -rotation.T @ pose[:3, 3:]], [pose[3:]]])
         if convention == "opengl":
             pose = np.diag([1.0, -1.0, -1.0, 1.0]) @ pose
