@@ -1,12 +1,13 @@
 """What a normal map's bit depth costs a render fit: the rendering study's four ICT maps (512²,
-expressions outside the model: docs/studies.md §5) and four people of ICT's model (samples, seeds
-1–4, σ 1, yaw 25°, pitch 5°, 512²) fitted by the render default from their float normals and from
+expressions outside the model: docs/studies.md §5), four people of ICT's model (samples, seeds
+1–4, σ 1, yaw 25°, pitch 5°, 512²) and four of the ICT face mask's (another family: the same
+draws with the mask model) fitted by the render default from their float normals and from
 the same normals rounded as an 8-bit and a 16-bit PNG stores them ((n + 1) / 2, rounded, decoded,
 made unit again). Only the rounding differs: the maps go to ``reconstruct`` as arrays (that
 statfit's PNG reader gives these values is tests/test_png16.py's and tests/test_normalmap_io.py's
 claim). Error: mean vertex distance to the ground truth / its RMS radius
 (``cases.relative_errors``), all, observed and unobserved vertices. One thread a fit, two fits at a
-time (~7 min); rows in ``studies/results/png_bit_depth.json``.
+time (~10 min); rows in ``studies/results/png_bit_depth.json``.
 
     python studies/png_bit_depth.py [--report]
 """
@@ -22,7 +23,8 @@ sys.path.insert(0, str(ROOT / "studies"))
 from study_runs import study_main  # noqa: E402
 
 RESULTS = ROOT / "studies" / "results" / "png_bit_depth.json"
-CASES = ("jaw-open", "smile", "brow-up", "puff", "sample 1", "sample 2", "sample 3", "sample 4")
+CASES = ("jaw-open", "smile", "brow-up", "puff", "sample 1", "sample 2", "sample 3", "sample 4",
+         "mask 1", "mask 2", "mask 3", "mask 4")
 DEPTHS = ("float", "16-bit", "8-bit")
 
 
@@ -42,17 +44,25 @@ def rounded(normal_map, depth: str):
     return NormalMap(unit.astype(np.float32), normal_map.mask, normal_map.camera)
 
 
-def in_span(case: str):
-    """(ground truth, 512² NormalMap, camera, visible-vertex mask) of a person ICT's model makes."""
-    import numpy as np
+def model_of(case: str):
+    """The model a case is fitted with: ICT's head, or for 'mask' cases the ICT face mask
+    (benchmarks/families.py: another family, millimetres, ~3,000 vertices)."""
     from cases import ict_model
+    from families import family_model
+
+    return family_model("ict-mask") if case.startswith("mask") else ict_model()
+
+
+def in_span(case: str):
+    """(ground truth, 512² NormalMap, camera, visible-vertex mask) of a person the case's model makes."""
+    import numpy as np
 
     from statfit.geometry.metrics import visible_vertices
     from statfit.renderer.images import render_target
     from statfit.structures.normal_map import NormalMap
     from statfit.synth.sample import camera_for_view, sample_target
 
-    model = ict_model()
+    model = model_of(case)
     truth = sample_target(model, np.random.default_rng(int(case.split()[1])))
     camera = camera_for_view(truth, 25.0, 5.0, 512)
     normals, mask = render_target(truth, model.faces, camera)
@@ -66,19 +76,19 @@ def run_case(case: str, depth: str) -> dict:
 
     torch.set_num_threads(1)
     import render_coarse_to_fine
-    from cases import ict_model, relative_errors
+    from cases import relative_errors
 
     from statfit.render.job import reconstruct
 
-    truth, normal_map, camera, visible = (in_span(case) if case.startswith("sample") else
-                                          render_coarse_to_fine.make_case(case))
+    truth, normal_map, camera, visible = (render_coarse_to_fine.make_case(case) if case in CASES[:4] else
+                                          in_span(case))
     start = time.perf_counter()
-    fit = reconstruct(ict_model(), rounded(normal_map, depth), camera, "default")
+    fit = reconstruct(model_of(case), rounded(normal_map, depth), camera, "default")
     return {"case": case, "depth": depth, "seconds": time.perf_counter() - start,
             **relative_errors(fit.vertices, truth, visible)}
 
 
-GROUPS = {"expressions": CASES[:4], "in span": CASES[4:]}
+GROUPS = {"expressions": CASES[:4], "in span": CASES[4:8], "mask, in span": CASES[8:]}
 
 
 def report(rows: list[dict]) -> str:
