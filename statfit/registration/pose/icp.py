@@ -26,11 +26,8 @@ class Matcher:
     def set_shape(self, vertices: np.ndarray) -> None:
         self.vertices = vertices
         self.tree = kd_tree(vertices)
-        a, b, c = (vertices[self.faces[:, i]] for i in range(3))
-        corner_normals = np.repeat(np.cross(b - a, c - a), 3, axis=0)
-        normals = np.stack([np.bincount(self.faces.reshape(-1), corner_normals[:, i], len(vertices))
-                            for i in range(3)], axis=1)
-        self.normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+        self.normals = vertex_normals(self.faces, vertices)
+        a, b = vertices[self.faces[:, 0]], vertices[self.faces[:, 1]]
         self.spacing = float(np.linalg.norm(b - a, axis=1).mean())
 
     def __call__(self, local: np.ndarray, local_normals: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -92,3 +89,12 @@ def row_quantile(values: np.ndarray, mask: np.ndarray, q: float) -> np.ndarray:
         diff = b - a
         value = np.where(t >= 0.5, b - diff * (1 - t), a + diff * t)   # numpy's own interpolation
     return np.where(count > 10, value, np.inf)
+
+
+def vertex_normals(faces: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+    """Unit vertex normals (N, 3) of ``vertices`` (N, 3) and ``faces`` (F, 3): the area-weighted sum
+    of the triangles' normals at each vertex."""
+    a, b, c = (vertices[faces[:, i]] for i in range(3))
+    corner_normals = np.repeat(np.cross(b - a, c - a), 3, axis=0)
+    normals = np.stack([np.bincount(faces.reshape(-1), corner_normals[:, i], len(vertices)) for i in range(3)], axis=1)
+    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)

@@ -8,7 +8,8 @@ from scipy.spatial import cKDTree
 
 from statfit.errors import StatfitError
 from statfit.registration.pose.hypotheses import VISIBLE_COSINE, Poses
-from statfit.registration.pose.icp import Matcher
+from statfit.registration.pose.icp import Matcher, vertex_normals
+from statfit.structures.kdtree import kd_tree
 
 TOLERANCE = 0.05           # truncation of the score, model RMS radii (≈ 5 mm on a head)
 POLISH_TOLERANCE = 0.02    # the polished poses' score: a fit with every mode lies this close, clutter farther
@@ -20,6 +21,17 @@ MIN_MATCHED = 0.3          # fewer scan points than this within TOLERANCE: no pa
 # a shoulders tube ≤ 0.62; heads of another model family fitted 0.81-0.90, with coefficients up to
 # 2.2 on average and 6.6 in one mode; docs/studies.md §17).
 EXPLAINED = 0.75
+# ... or, clutter lowering that share (hair, neck and shoulders explain nothing), the fit needs at most
+# these, the scan supports this share of the fit's surface that faces the scanner and the pose is clear
+# (docs/studies.md §40: chosen on cluttered people of four families under each other's models, whose right
+# poses this refused under the three real families' models needed ≤ 2.76 on average and ≤ 9.5 in one mode,
+# supported ≥ 0.53; of nine kinds of shapes, those that come this near are capsules and half spheres,
+# whose poses are all ambiguous).
+FAR_RMS = 2.75
+FAR_COEFFICIENT = 10.0
+SUPPORTED = 0.5
+BEYOND_ANY_PERSON = 12.5   # in one mode, however much of the scan the fit explains (people ≤ 11.7; planes ≥ 14.7)
+NOTHING_EXPLAINED = 0.1    # the polished fit near fewer of the points: it never fitted (people ≥ 0.29 at clutter 2)
 
 
 @dataclass(frozen=True)
@@ -61,24 +73,48 @@ def unsupported_share(matcher: Matcher, poses: Poses, cover: ScanCover, toleranc
     return capped.mean(axis=1)
 
 
+def supported_share(faces: np.ndarray, shape: np.ndarray, points: np.ndarray, facing: np.ndarray,
+                    tolerance: float) -> float:
+    """The share of ``shape``'s vertices (N, 3; placed in the frame of the scan's ``points`` (M, 3))
+    that face the scanner (``facing`` (3,), unit) and have a scan point within ``tolerance``, widened
+    to twice the points' median spacing for a sparse scan: how much of the fit the scan holds up,
+    which clutter around it does not lower."""
+    tree = kd_tree(points)
+    spacing = float(np.median(tree.query(points, k=2)[0][:, 1]))
+    seen = vertex_normals(faces, shape) @ facing > VISIBLE_COSINE
+    if not seen.any():
+        return 0.0
+    distance, _ = tree.query(shape[seen], distance_upper_bound=max(tolerance, 2 * spacing))
+    return float(np.isfinite(distance).mean())
+
+
 def check_plausible(matched: float, explained: float, coefficients: np.ndarray, tolerance: float,
-                    has_landmarks: bool = True) -> str | None:
+                    has_landmarks: bool = True, *, supported: float = 0.0, clear: bool = False) -> str | None:
     """Refuse a scan that nothing of the model matches, or only a shape far outside the model:
-    fewer than MIN_MATCHED of its points near the first modes' best fit; or the best fit with every
-    mode needing coefficients beyond IMPLAUSIBLE_RMS on average or IMPLAUSIBLE_COEFFICIENT in one
-    mode (measured: a sphere, a plane, a shoulders tube ≥ 3.0 on average and ≥ 9.7 in one mode;
-    realistic face scans with clutter ≤ 1.3 and ≤ 4.0) while explaining less than EXPLAINED of the
-    points (``explained``, the polished fit's matched share); the refusal's advice names
-    --landmarks where the model ``has_landmarks``. Returns a warning for a scan the model
+    fewer than MIN_MATCHED of its points near the first modes' best fit, or fewer than
+    NOTHING_EXPLAINED near the fit with every mode (``explained``, the polished fit's matched share);
+    or that fit needing coefficients beyond IMPLAUSIBLE_RMS on average or IMPLAUSIBLE_COEFFICIENT in
+    one mode (measured: a sphere, a plane, a shoulders tube ≥ 3.0 on average and ≥ 9.7 in one mode;
+    realistic face scans with clutter ≤ 1.3 and ≤ 4.0) unless it explains EXPLAINED of the points
+    with at most BEYOND_ANY_PERSON in one mode, or its coefficients stay within FAR_RMS and
+    FAR_COEFFICIENT, the scan supports at least SUPPORTED of the fit's surface that faces it
+    (``supported``, :func:`supported_share`) and the pose is ``clear`` (no other pose scores near it:
+    a capsule or a ball fits as well turned any way); docs/studies.md §40. The refusal's advice
+    names --landmarks where the model ``has_landmarks``. Returns a warning for a scan the model
     explains only with such coefficients (a person far outside the model's people), else None."""
     if matched < MIN_MATCHED:
         raise StatfitError(f"the scan does not look like the model anywhere: at best {matched:.0%} of its points lie "
                            f"within {tolerance:.3g} model units of the surface in any pose (need {MIN_MATCHED:.0%}); "
                            "is it a scan of what the model describes?")
+    if explained < NOTHING_EXPLAINED:
+        raise StatfitError(f"the scan does not look like the model anywhere: the model's best fit lies near "
+                           f"{explained:.0%} of its points; is it a scan of what the model describes?")
     rms, largest = float(np.sqrt(np.mean(coefficients**2))), float(np.abs(coefficients).max())
     if rms <= IMPLAUSIBLE_RMS and largest <= IMPLAUSIBLE_COEFFICIENT:
         return None
-    if explained < EXPLAINED:
+    explains = explained >= EXPLAINED and largest <= BEYOND_ANY_PERSON
+    held_up = clear and rms <= FAR_RMS and largest <= FAR_COEFFICIENT and supported >= SUPPORTED
+    if not (explains or held_up):
         raise StatfitError(f"the scan does not look like the model's shape: its best fit needs coefficients of "
                            f"{rms:.1f} standard deviations on average and {largest:.1f} at most, where a scan of what the model "
                            "describes needs about 1 (if it is one, place it with "

@@ -66,7 +66,8 @@ from statfit.registration.hair import hair_suspects
 from statfit.registration.pose.hypotheses import DISTINCT_DEGREES, angle_between, distinct_poses, hypothesis_starts
 from statfit.registration.pose.icp import Matcher, trimmed_icp
 from statfit.registration.pose.refinement import ROUNDS, polish_pose, refine_with_first_modes, scaled_modes
-from statfit.registration.pose.scoring import TOLERANCE, ScanCover, check_plausible, score_poses
+from statfit.registration.pose.scoring import (TOLERANCE, ScanCover, check_plausible, score_poses,
+                                                supported_share)
 from statfit.structures.frame import Frame
 from statfit.structures.kdtree import kd_tree
 from statfit.structures.scan import Scan
@@ -214,8 +215,11 @@ def estimate_pose(model: StatModel, scan: Scan, seed: int = 0, threads: int | No
             matcher, mean, every_mode, points[polish], scan.normals[polish], in_place, move=False)
         if in_place_score <= KEEP_FRAME * polished_score:
             transform, matched, coefficients = in_place, in_place_matched, in_place_coefficients
+    fitted = transform.apply(mean + (every_mode @ torch.as_tensor(coefficients)).numpy())
+    supported = supported_share(model.faces, fitted, points[polish], facing, TOLERANCE)
     if (far := check_plausible(coarse_matched, matched, coefficients, TOLERANCE * frame.scale,
-                                  model.landmarks is not None)) is not None:
+                               model.landmarks is not None, supported=supported,
+                               clear=runner_up > AMBIGUITY * coarse_score)) is not None:
         warnings.warn(far, StatfitWarning, stacklevel=2)
     return PoseEstimate(to_scan_frame(transform, frame, centroid, units), coarse_score, matched, runner_up, units,
                         coefficients)
