@@ -15,13 +15,15 @@ the same row's facts.
 - people: realistic scans (benchmarks/families.py; one view, yaw within ±40°, any rotation and
   offset, mm, 4,300 points on the person, clutter 0, 0.5 and 2 per person point), seeds 0–9;
 - shapes: a plane, a sphere, a tube, a box, a cylinder, a torus, a capsule, a half sphere and a bumpy
-  ball, each in a random rotation, the model's size (0.6–1.5× from seed 3 on), in mm, seeds 0–8.
+  ball, each in a random rotation, the model's size (0.6–1.5× from seed 3 on), in mm, seeds 0–8;
+- sparse and dense scans: the three real families' people under their models, seeds 6–7, at 1,000
+  and 20,000 points (the supported share's tolerance widens with a sparse scan's spacing).
 
 Which seeds chose which limit and which checked them: ``GROUPS``, ``SHAPE_GROUPS``.
 
     python studies/pose_refusals.py [--report]
 
-~30 min on 2 cores; rows in studies/results/pose_refusals.json (docs/studies.md §40).
+~35 min on 2 cores; rows in studies/results/pose_refusals.json (docs/studies.md §40).
 """
 from __future__ import annotations
 
@@ -39,6 +41,8 @@ FAMILIES = ("ict", "ict-mask", "makehuman", "embedded")
 SHAPES = ("plane", "sphere", "tube", "box", "cylinder", "torus", "capsule", "halfsphere", "bumpy")
 CLUTTER = (0.0, 0.5, 2.0)
 PEOPLE_SEEDS, SHAPE_SEEDS = 10, 9
+POINTS, OTHER_POINTS, OTHER_POINTS_SEEDS = 4300, (1000, 20000), range(6, 8)
+REAL = ("ict", "ict-mask", "makehuman")
 # which seeds chose the rule's limits (docs/studies.md §40): people 0–1 the band's FAR_RMS, FAR_COEFFICIENT and
 # SUPPORTED; 2–5 showed wrong poses in it, which its clarity condition (the search's own AMBIGUITY) left out;
 # shapes 0–5 BEYOND_ANY_PERSON and NOTHING_EXPLAINED; people 6–9 and shapes 6–8 checked them all
@@ -89,7 +93,7 @@ def shape_scan(model_name: str, kind: str, seed: int):
     return Scan.from_mesh(mesh.vertices, mesh.faces)
 
 
-def run_case(model_name: str, subject: str, seed: int, clutter: float) -> dict:
+def run_case(model_name: str, subject: str, seed: int, clutter: float, points: int = POINTS) -> dict:
     import warnings
 
     import numpy as np
@@ -102,11 +106,11 @@ def run_case(model_name: str, subject: str, seed: int, clutter: float) -> dict:
     from statfit.synth.scanner import realistic_scan
 
     torch.set_num_threads(1)
-    row = {"model": model_name, "subject": subject, "seed": seed, "clutter": clutter}
+    row = {"model": model_name, "subject": subject, "seed": seed, "clutter": clutter, "points": points}
     made = None
     if subject in FAMILIES:
         rng = np.random.default_rng(seed)
-        made = realistic_scan(person(subject, seed), family_model(subject).faces, rng,
+        made = realistic_scan(person(subject, seed), family_model(subject).faces, rng, points,
                               yaw_deg=rng.uniform(-40, 40), clutter=clutter, units="mm", posed=True)
         scan = Scan.from_mesh(made.vertices, made.faces)
     else:
@@ -146,10 +150,12 @@ def run_case(model_name: str, subject: str, seed: int, clutter: float) -> dict:
 
 
 def runs() -> list[tuple]:
-    people = [(model, subject, seed, clutter) for model in FAMILIES for subject in FAMILIES
+    people = [(model, subject, seed, clutter, POINTS) for model in FAMILIES for subject in FAMILIES
               for seed in range(PEOPLE_SEEDS) for clutter in CLUTTER]
-    shapes = [(model, kind, seed, 0.0) for model in FAMILIES for kind in SHAPES for seed in range(SHAPE_SEEDS)]
-    return people + shapes
+    shapes = [(model, kind, seed, 0.0, POINTS) for model in FAMILIES for kind in SHAPES for seed in range(SHAPE_SEEDS)]
+    sparse_and_dense = [(model, subject, seed, clutter, points) for model in REAL for subject in REAL
+                        for seed in OTHER_POINTS_SEEDS for clutter in CLUTTER for points in OTHER_POINTS]
+    return people + shapes + sparse_and_dense
 
 
 def before(row: dict) -> str:
@@ -164,7 +170,7 @@ def before(row: dict) -> str:
 
 
 def report(rows: list[dict]) -> str:
-    people = [r for r in rows if r["subject"] in FAMILIES]
+    people = [r for r in rows if r["subject"] in FAMILIES and r.get("points", POINTS) == POINTS]
     shapes = [r for r in rows if r["subject"] not in FAMILIES]
     right = lambda r: r.get("degrees", 180.0) < RIGHT_DEGREES      # noqa: E731
     lines = []
@@ -201,6 +207,16 @@ def report(rows: list[dict]) -> str:
         nearest = min((r for r in mine if "rms" in r), key=lambda r: r["rms"])
         lines.append(f"| {model} | {len(mine)} | {' | '.join(accepted)} | {nearest['rms']:.2f} "
                      f"({nearest['subject']}) | {nearest['largest']:.1f}, {nearest['supported']:.2f} |")
+    lines += ["", f"Sparse and dense scans: the real families' people under their models, seeds "
+              f"{OTHER_POINTS_SEEDS.start}–{OTHER_POINTS_SEEDS.stop - 1}, every clutter", "",
+              "| points | scans | refused | refused, pose right | wrong pose accepted | supported, right poses: least / median |",
+              "|---|---|---|---|---|---|"]
+    for points in sorted({POINTS, *OTHER_POINTS}):
+        mine = [r for r in rows if r.get("points", POINTS) == points and r["subject"] in REAL and r["model"] in REAL
+                and r["seed"] in OTHER_POINTS_SEEDS]
+        held = sorted(r["supported"] for r in mine if right(r) and "supported" in r)
+        lines.append(_people_row(str(points), mine, right)[:-1]
+                     + (f"| {held[0]:.2f} / {held[len(held) // 2]:.2f} |" if held else "| – |"))
     accepted = [r for r in shapes if r["decision"] != "refuse"]
     lines += ["", "Shapes accepted now: " + (", ".join(
         f"{r['subject']} {r['seed']} under {r['model']} (RMS {r['rms']:.2f}, largest {r['largest']:.1f}, "
@@ -222,4 +238,5 @@ def _people_row(label: str, rows: list[dict], right) -> str:
 
 
 if __name__ == "__main__":
-    study_main(__doc__, run_case, runs, RESULTS, report, key=lambda r: (r["model"], r["subject"], r["seed"], r["clutter"]))
+    study_main(__doc__, run_case, runs, RESULTS, report,
+               key=lambda r: (r["model"], r["subject"], r["seed"], r["clutter"], r.get("points", POINTS)))
