@@ -220,3 +220,39 @@ def test_a_solve_of_more_columns_than_cholespy_takes_on_cuda_runs_in_blocks(embe
     whole = solver.solve(rhs)
     solver.max_columns = 2
     assert torch.equal(solver.solve(rhs), whole)
+
+
+def test_scans_posed_side_by_side_fit_as_posed_one_after_another(embedded_model, monkeypatch):
+    """The default on three scans in any pose and unit (one of a person far outside the model, whose
+    pose search warns; one of NaNs): posed on threads side by side (``threads`` unset: the cores
+    allow two) and one after another (``threads=1``), the same poses and fits, and each fit keeps
+    its own warnings and failure."""
+    from statfit.core.threads import usable_cores
+    from statfit.registration import many
+    from statfit.structures.scan import Scan
+    from statfit.synth.scanner import realistic_scan
+
+    scans = []
+    for seed, spread in ((2, 3.0), (4, 1.0)):
+        rng = np.random.default_rng(seed)
+        shape = embedded_model.shape(spread * rng.standard_normal(embedded_model.num_modes))
+        made = realistic_scan(shape, embedded_model.faces, rng, clutter=0.5, units=("mm", "cm")[seed % 3 == 1])
+        scans.append(Scan.from_mesh(made.vertices, made.faces))
+    scans.insert(1, np.full((50, 3), np.nan))
+    side_by_side = []
+    threads_of = many.map_in_threads
+    monkeypatch.setattr(many, "map_in_threads", lambda work, items, threads: side_by_side.append(threads)
+                        or threads_of(work, items, threads))
+    apart = register_many(embedded_model, scans)
+    after = register_many(embedded_model, scans, threads=1)
+    if usable_cores() >= 2:
+        assert side_by_side[0] >= 2
+    assert side_by_side[1] == 1
+    assert apart[1].fit is None and "NaN" in apart[1].error and apart[1].error == after[1].error
+    for b in (0, 2):
+        assert apart[b].error is None and after[b].error is None
+        assert apart[b].fit.pose == after[b].fit.pose
+        np.testing.assert_array_equal(apart[b].fit.vertices, after[b].fit.vertices)
+        assert apart[b].warnings == after[b].warnings
+    assert any("far outside the model's people" in w for w in apart[0].warnings)
+    assert not any("far outside the model's people" in w for w in apart[2].warnings)

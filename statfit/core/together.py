@@ -9,10 +9,13 @@ batched stage that fails is rerun a fit at a time, so only the fits that fail al
 """
 from __future__ import annotations
 
+import threading
 import time
 import warnings
+from collections import defaultdict
+from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import torch
 
@@ -67,17 +70,54 @@ class Member:
     def alone(self, work: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
         """``work(*args, **kwargs)`` on this fit's account: its time, its warnings; a failure becomes its error
         (and None is returned)."""
-        started = time.perf_counter()
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             try:
-                return work(*args, **kwargs)
-            except Exception as error:  # noqa: BLE001 - a bug or an unforeseen input: this fit's, the others go on
-                self.outcome.error = one_line(error)
+                return self._accounted(work, args, kwargs)
             finally:
                 self.outcome.warnings += [str(w.message) for w in caught]
-                self.seconds += time.perf_counter() - started
+
+    def alone_on_a_thread(self, taken: Callable[[], list[str]], work: Callable[..., Any], *args: Any,
+                          **kwargs: Any) -> Any:
+        """:meth:`alone` for work that runs beside other fits' on threads of its own, inside
+        :func:`warnings_by_thread` (whose ``taken`` hands over this thread's warnings): ``work`` must
+        raise its warnings on the thread that calls it."""
+        try:
+            return self._accounted(work, args, kwargs)
+        finally:
+            self.outcome.warnings += taken()
+
+    def _accounted(self, work: Callable[..., Any], args: tuple, kwargs: dict[str, Any]) -> Any:
+        started = time.perf_counter()
+        try:
+            return work(*args, **kwargs)
+        except Exception as error:  # noqa: BLE001 - a bug or an unforeseen input: this fit's, the others go on
+            self.outcome.error = one_line(error)
+        finally:
+            self.seconds += time.perf_counter() - started
         return None
+
+
+@contextmanager
+def warnings_by_thread() -> Iterator[Callable[[], list[str]]]:
+    """Within the block every warning is kept for the thread that raised it (``warnings.catch_warnings``
+    is one state for the whole process, so fits on threads side by side cannot each hold one). Yields
+    ``taken()``: the calling thread's warnings so far, handed over once."""
+    kept: dict[int, list[str]] = defaultdict(list)
+    lock = threading.Lock()
+
+    def show(message: Warning | str, *_: Any, **__: Any) -> None:
+        with lock:
+            kept[threading.get_ident()].append(str(message))
+
+    def taken() -> list[str]:
+        with lock:
+            return kept.pop(threading.get_ident(), [])
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        warnings.showwarning = show
+        yield taken
 
 
 BatchedTerm = Callable[[Sequence[Member], Settings], Any]

@@ -17,6 +17,7 @@ diverges is rerun a fit at a time.
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import Any, Sequence
 
 import numpy as np
@@ -25,8 +26,8 @@ import torch
 from statfit.core.methods import Fallback, resolve
 from statfit.core.settings import Settings
 from statfit.core.stages import Fit, PipelineResult
-from statfit.core.threads import intra_op_threads
-from statfit.core.together import FitOutcome, Member, fits_in_memory, run_stages_together
+from statfit.core.threads import intra_op_threads, map_in_threads, task_threads
+from statfit.core.together import FitOutcome, Member, fits_in_memory, run_stages_together, warnings_by_thread
 from statfit.errors import StatfitError
 from statfit.model.statmodel import StatModel
 from statfit.objectives.scans import ScanBatch
@@ -82,10 +83,18 @@ def register_many(model: StatModel, scans: Sequence[np.ndarray | Scan], method: 
     with intra_op_threads(plan.threads):
         torch.manual_seed(seed)
         shared = model_tensors(model, plan.device, dtype)
-        for member, scan in zip(members, scans):
+        # The scans are posed side by side (host work: the pose search), each search on its own thread
+        # alone, where one search would leave cores idle; the same poses as one after another.
+        side_by_side = task_threads(len(members), plan.threads_asked)
+        each = plan if side_by_side == 1 else dataclasses.replace(plan, threads_asked=1)
+
+        def pose(member: _Scan) -> None:
             marks = None if landmarks is None else landmarks[member.index]
-            member.posed = member.alone(PosedScan.of, model, scan, plan, align, marks, clutter, region, seed, dtype,
-                                        shared)
+            member.posed = member.alone_on_a_thread(taken, PosedScan.of, model, scans[member.index], each, align,
+                                                    marks, clutter, region, seed, dtype, shared)
+
+        with warnings_by_thread() as taken:
+            map_in_threads(pose, members, side_by_side)
         posed = [m for m in members if not m.failed]
         _fit_together(posed, plan.stages, plan.weight, warn_far=align == "none")
         reports: dict[int, dict] = {}
