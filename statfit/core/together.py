@@ -15,7 +15,7 @@ import warnings
 from collections import defaultdict
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any, Callable, Iterator, Sequence, TypeVar
 
 import torch
 
@@ -23,6 +23,7 @@ from statfit.core.fit import StageTimer, run_fit
 from statfit.core.methods import batchable, build
 from statfit.core.settings import FitSpace, Settings
 from statfit.core.stages import Fit, run_stages
+from statfit.core.threads import map_in_threads
 from statfit.errors import one_line
 
 
@@ -120,19 +121,34 @@ def warnings_by_thread() -> Iterator[Callable[[], list[str]]]:
         yield taken
 
 
+M = TypeVar("M", bound=Member)
+
+
+def each_alone(members: Sequence[M], work: Callable[[M], Any], threads: int = 1) -> list[Any]:
+    """``member.alone(work, member)`` for every member, in order, up to ``threads`` of them side by side
+    on threads (host work one fit leaves cores idle in; their warnings kept per thread,
+    :func:`warnings_by_thread`): what one after another gives, where ``work`` shares nothing it
+    changes with another member's and raises its warnings on the thread that calls it."""
+    if threads <= 1 or len(members) <= 1:
+        return [member.alone(work, member) for member in members]
+    with warnings_by_thread() as taken:
+        return map_in_threads(lambda member: member.alone_on_a_thread(taken, work, member), members, threads)
+
+
 BatchedTerm = Callable[[Sequence[Member], Settings], Any]
 
 
-def run_stages_together(members: Sequence[Member], stages: Sequence[Settings], batched_term: BatchedTerm) -> None:
+def run_stages_together(members: Sequence[Member], stages: Sequence[Settings], batched_term: BatchedTerm,
+                        side_by_side: int = 1) -> None:
     """Run ``stages`` on every member that has not failed, from its ``x``: batchable stages of two
     or more fits together against ``batched_term(members, settings)`` (an objective over (B, N, 3)
-    vertices with ``per_fit``), the others a fit at a time; a batched stage that fails is rerun a
-    fit at a time. Each member's ``x``, ``done`` and ``loss`` move on."""
+    vertices with ``per_fit``), the others a fit at a time, ``side_by_side`` of them at once
+    (:func:`each_alone`); a batched stage that fails is rerun a fit at a time. Each member's ``x``,
+    ``done`` and ``loss`` move on."""
     live = [m for m in members if not m.failed]
     for settings in stages:
         if not (len(live) > 1 and batchable(settings) and _stage_together(live, settings, batched_term)):
-            for member in live:
-                member.alone(_stage_alone, member, settings)
+            each_alone(live, lambda member: _stage_alone(member, settings), side_by_side)
         live = [m for m in live if not m.failed]
 
 

@@ -26,8 +26,8 @@ import torch
 from statfit.core.methods import Fallback, resolve
 from statfit.core.settings import Settings
 from statfit.core.stages import Fit, PipelineResult
-from statfit.core.threads import intra_op_threads, map_in_threads, task_threads
-from statfit.core.together import FitOutcome, Member, fits_in_memory, run_stages_together, warnings_by_thread
+from statfit.core.threads import intra_op_threads, task_threads
+from statfit.core.together import FitOutcome, Member, each_alone, fits_in_memory, run_stages_together
 from statfit.errors import StatfitError
 from statfit.model.statmodel import StatModel
 from statfit.objectives.scans import ScanBatch
@@ -83,29 +83,31 @@ def register_many(model: StatModel, scans: Sequence[np.ndarray | Scan], method: 
     with intra_op_threads(plan.threads):
         torch.manual_seed(seed)
         shared = model_tensors(model, plan.device, dtype)
-        # The scans are posed side by side (host work: the pose search), each search on its own thread
-        # alone, where one search would leave cores idle; the same poses as one after another.
+        # Each fit's host work (its pose search, closed-form stage and fallback test) runs side by side
+        # with the others' where one fit would leave cores idle: the same fits as one after another.
         side_by_side = task_threads(len(members), plan.threads_asked)
-        each = plan if side_by_side == 1 else dataclasses.replace(plan, threads_asked=1)
+        each = plan if side_by_side == 1 else dataclasses.replace(plan, threads_asked=1)    # a search on its thread
 
-        def pose(member: _Scan) -> None:
+        def pose(member: _Scan) -> PosedScan:
             marks = None if landmarks is None else landmarks[member.index]
-            member.posed = member.alone_on_a_thread(taken, PosedScan.of, model, scans[member.index], each, align,
-                                                    marks, clutter, region, seed, dtype, shared)
+            return PosedScan.of(model, scans[member.index], each, align, marks, clutter, region, seed, dtype, shared)
 
-        with warnings_by_thread() as taken:
-            map_in_threads(pose, members, side_by_side)
+        for member, posed_scan in zip(members, each_alone(members, pose, side_by_side)):
+            member.posed = posed_scan
         posed = [m for m in members if not m.failed]
-        _fit_together(posed, plan.stages, plan.weight, warn_far=align == "none")
+        _fit_together(posed, plan.stages, plan.weight, side_by_side, warn_far=align == "none")
         reports: dict[int, dict] = {}
         if plan.fallback is not None:
-            for member in posed:
-                if not member.failed and member.run.whole_model:
-                    with member.timer("fallback test"):
-                        reports[member.index] = member.alone(member.posed.fallback_test, member.run, plan.fallback)
+            tested = [m for m in posed if not m.failed and m.run.whole_model]
+
+            def fallback_test(member: _Scan) -> dict:
+                with member.timer("fallback test"):
+                    return member.posed.fallback_test(member.run, plan.fallback)
+
+            reports = dict(zip((m.index for m in tested), each_alone(tested, fallback_test, side_by_side)))
             refit = [m for m in posed if not m.failed and (reports.get(m.index) or {}).get("used")]
             first = {m.index: m.run.result.iterations for m in refit}      # the refit's iterations add to these
-            _fit_together(refit, resolve(plan.fallback.method), plan.fallback_weight, warn_far=False)
+            _fit_together(refit, resolve(plan.fallback.method), plan.fallback_weight, side_by_side, warn_far=False)
             for member in refit:
                 member.run.result.iterations += first[member.index]
         for member in posed:
@@ -120,15 +122,17 @@ def register_many(model: StatModel, scans: Sequence[np.ndarray | Scan], method: 
     return [m.outcome for m in members]
 
 
-def _fit_together(members: list[_Scan], stages: tuple[Settings, ...], weight: float, warn_far: bool) -> None:
+def _fit_together(members: list[_Scan], stages: tuple[Settings, ...], weight: float, side_by_side: int,
+                  warn_far: bool) -> None:
     """Run ``stages`` on every member (its ``run`` holds the result): closed-form and unbatchable
-    stages a fit at a time, gradient stages of filtered methods together."""
+    stages a fit at a time, ``side_by_side`` of them at once, gradient stages of filtered methods
+    together."""
     for member in members:
         member.setup = member.alone(member.posed.setup, stages, weight, warn_far)
         if member.setup is not None:
             member.space, member.objective = member.posed.space, member.setup.objective
             member.x, member.done, member.loss = member.setup.start, 0, {}
-    run_stages_together(members, stages, _scan_batch)
+    run_stages_together(members, stages, _scan_batch, side_by_side)
     for member in members:
         if not member.failed:
             member.run = member.alone(member.setup.ran, PipelineResult(member.x, member.loss, member.done))
