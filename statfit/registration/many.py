@@ -83,8 +83,8 @@ def register_many(model: StatModel, scans: Sequence[np.ndarray | Scan], method: 
     with intra_op_threads(plan.threads):
         torch.manual_seed(seed)
         shared = model_tensors(model, plan.device, dtype)
-        # Each fit's host work (its pose search, closed-form stage and fallback test) runs side by side
-        # with the others' where one fit would leave cores idle: the same fits as one after another.
+        # Each fit's host work (its pose search, set-up, closed-form stage and fallback test) runs side
+        # by side with the others' where one fit would leave cores idle: the same fits as one after another.
         side_by_side = task_threads(len(members), plan.threads_asked)
         each = plan if side_by_side == 1 else dataclasses.replace(plan, threads_asked=1)    # a search on its thread
 
@@ -124,11 +124,12 @@ def register_many(model: StatModel, scans: Sequence[np.ndarray | Scan], method: 
 
 def _fit_together(members: list[_Scan], stages: tuple[Settings, ...], weight: float, side_by_side: int,
                   warn_far: bool) -> None:
-    """Run ``stages`` on every member (its ``run`` holds the result): closed-form and unbatchable
-    stages a fit at a time, ``side_by_side`` of them at once, gradient stages of filtered methods
-    together."""
-    for member in members:
-        member.setup = member.alone(member.posed.setup, stages, weight, warn_far)
+    """Run ``stages`` on every member (its ``run`` holds the result): each fit's set-up (its start,
+    hair test and data term), closed-form and unbatchable stages a fit at a time, ``side_by_side`` of
+    them at once, gradient stages of filtered methods together."""
+    setups = each_alone(members, lambda member: member.posed.setup(stages, weight, warn_far), side_by_side)
+    for member, setup in zip(members, setups):
+        member.setup = setup
         if member.setup is not None:
             member.space, member.objective = member.posed.space, member.setup.objective
             member.x, member.done, member.loss = member.setup.start, 0, {}
