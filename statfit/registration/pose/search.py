@@ -200,7 +200,7 @@ def estimate_pose(model: StatModel, scan: Scan, seed: int = 0, threads: int | No
         start, _, head_matched, _ = leads[best]
         scalp = scalp_triangles(model) if head_matched < CLUTTER_MATCHED else None    # clutter: hair can be there
         start, _, _, face_fit = polish_pose(matcher, mean, every_mode, points[lead], scan.normals[lead], start,
-                                        region=face if scalp is None else ~scalp)
+                                        region=face if scalp is None else ~scalp, settle=True)
         face_shape = mean + (every_mode @ torch.as_tensor(face_fit)).numpy()
         hair = hair_suspects(matcher.query, torch.as_tensor(face_shape),
                              torch.as_tensor(start.inverse_apply(points[polish])), torch.as_tensor(face),
@@ -208,7 +208,7 @@ def estimate_pose(model: StatModel, scan: Scan, seed: int = 0, threads: int | No
         hair = None if hair is None else hair.numpy()    # None: not a head under hair, fit every point
     transform, polished_score, matched, coefficients = polish_pose(matcher, mean, every_mode, points[polish],
                                                                scan.normals[polish], start,
-                                                               used=None if hair is None else ~hair)
+                                                               used=None if hair is None else ~hair, settle=True)
     in_place = Similarity(1.0, np.eye(3), (frame.center - centroid) / frame.scale)
     if units == 1.0 and near(in_place, coarse_pose):   # only then can the scan as it lies compete
         _, in_place_score, in_place_matched, in_place_coefficients = polish_pose(
