@@ -71,6 +71,17 @@ def test_the_check_accepts_a_far_person_only_where_the_scan_holds_a_clear_fit_up
             check_plausible(0.9, explained, coefficients, 0.01, supported=supported, clear=clear)
 
 
+def test_a_plausible_fit_that_barely_touches_the_scan_is_refused():
+    """Coefficients any person could have, but the fit lies near under half the points and the scan
+    holds up under 30% of its facing surface (a plane a settled polish bent a head onto, §41): refused.
+    Either alone is a person under clutter, or a face crop: fitted, without a warning."""
+    plausible = np.full(40, 1.0)
+    with pytest.raises(StatfitError, match="holds up 16% of the fit's surface"):
+        check_plausible(0.9, 0.32, plausible, 0.01, supported=0.16)
+    assert check_plausible(0.9, 0.32, plausible, 0.01, supported=0.45) is None       # clutter: little explained
+    assert check_plausible(0.9, 0.8, plausible, 0.01, supported=0.16) is None        # a crop: little of the fit held
+
+
 def test_the_supported_share_counts_the_fits_facing_vertices_near_the_scan():
     """A unit sphere's front half scanned: the vertices facing the scanner (+z) are all held up; grown
     away from the scan by more than the tolerance, none; a sparse scan widens the tolerance to its
