@@ -32,7 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(ROOT / "studies"))
 
-from pose_refusals import CLUTTER, FAMILIES, RIGHT_DEGREES, SHAPES  # noqa: E402
+from pose_refusals import CLUTTER, FAMILIES, RIGHT_DEGREES, SHAPES, recording  # noqa: E402
 from study_runs import study_main  # noqa: E402
 
 RESULTS = ROOT / "studies" / "results" / "polish_settle.json"
@@ -49,23 +49,11 @@ def _search(model, scan, variant: str) -> dict:
     import time
     import warnings
 
-    import numpy as np
-
     import statfit.registration.pose.search as search
     from statfit.errors import StatfitError
 
     checked, facts = search.check_plausible, {}
-
-    def recorded(matched, explained, coefficients, tolerance, has_landmarks=True, **given):
-        facts.update(explained=explained, rms=float(np.sqrt(np.mean(coefficients**2))),
-                     largest=float(np.abs(coefficients).max()), **given)
-        try:
-            facts["decision"] = "warn" if checked(matched, explained, coefficients, tolerance, has_landmarks,
-                                                  **given) else "ok"
-        except StatfitError:
-            facts["decision"] = "refuse"
-
-    search.check_plausible = recorded
+    search.check_plausible = recording(checked, facts)
     began = time.perf_counter()
     try:
         with warnings.catch_warnings():

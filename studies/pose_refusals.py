@@ -93,6 +93,25 @@ def shape_scan(model_name: str, kind: str, seed: int):
     return Scan.from_mesh(mesh.vertices, mesh.faces)
 
 
+def recording(checked, into: dict):
+    """``check_plausible`` (``checked``) that keeps the facts it saw and its decision (ok / warn /
+    refuse) in ``into`` instead of raising, so the pose search runs to its end."""
+    import numpy as np
+
+    from statfit.errors import StatfitError
+
+    def recorded(matched, explained, coefficients, tolerance, has_landmarks=True, **facts):
+        into.update(matched=matched, explained=explained, rms=float(np.sqrt(np.mean(coefficients**2))),
+                    largest=float(np.abs(coefficients).max()), **facts)
+        try:
+            into["decision"] = "warn" if checked(matched, explained, coefficients, tolerance, has_landmarks,
+                                                 **facts) else "ok"
+        except StatfitError:
+            into["decision"] = "refuse"
+
+    return recorded
+
+
 def run_case(model_name: str, subject: str, seed: int, clutter: float, points: int = POINTS) -> dict:
     import warnings
 
@@ -116,17 +135,7 @@ def run_case(model_name: str, subject: str, seed: int, clutter: float, points: i
     else:
         scan = shape_scan(model_name, subject, seed)
     checked = search.check_plausible
-
-    def recorded(matched, explained, coefficients, tolerance, has_landmarks=True, **facts):
-        row.update(matched=matched, explained=explained, rms=float(np.sqrt(np.mean(coefficients**2))),
-                   largest=float(np.abs(coefficients).max()), **facts)
-        try:
-            row["decision"] = "warn" if checked(matched, explained, coefficients, tolerance, has_landmarks,
-                                                **facts) else "ok"
-        except StatfitError:
-            row["decision"] = "refuse"
-
-    search.check_plausible = recorded
+    search.check_plausible = recording(checked, row)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
