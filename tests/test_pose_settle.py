@@ -6,7 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 
+from statfit.geometry.align import Similarity, compose
 from statfit.registration.pose import refinement
 from statfit.registration.pose.icp import Matcher
 from statfit.registration.pose.refinement import POLISH_ITERATIONS, polish_pose, scaled_modes
@@ -26,9 +28,6 @@ def test_a_settled_polish_of_a_clean_scan_is_the_twelve_step_polish_to_the_bit(e
     points = (made.vertices - centroid) / (1000.0 * frame.scale)
     scan = Scan.from_mesh(made.vertices, made.faces)
     truth = to_unit_frames(made.transform, frame, centroid, 1000.0)
-    from scipy.spatial.transform import Rotation
-
-    from statfit.geometry.align import Similarity, compose
     start = compose(truth, Similarity(1.0, Rotation.from_rotvec([0.0, np.radians(3.0), 0.0]).as_matrix(),
                                       np.array([0.02, 0.0, 0.0])))
     mean = frame.to_unit(embedded_model.template)

@@ -62,7 +62,8 @@ def polish_pose(matcher: Matcher, mean: np.ndarray, directions: torch.Tensor, po
     its modes and under its prior; a free scale would trade against them at no cost. ``move`` False
     holds the pose; ``region`` (F,) bool: only points attached to these
     triangles are fitted; ``used`` (M,) bool: only these points are fitted (every point is scored);
-    ``settle``: go on past POLISH_ITERATIONS while the pose still moves (SETTLED, SETTLE_MOST). Returns the pose (model unit frame → scan unit frame), its score (POLISH_TOLERANCE), matched
+    ``settle``: go on past POLISH_ITERATIONS while the pose still moves (SETTLED, SETTLE_MOST).
+    Returns the pose (model unit frame → scan unit frame), its score (POLISH_TOLERANCE), matched
     share and the coefficients (K,) in standard deviations."""
     middle = start.inverse_apply(points).mean(axis=0)
     start = Similarity(1.0, start.rotation, start.apply(middle) - start.rotation @ middle)
