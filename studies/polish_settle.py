@@ -5,9 +5,10 @@ One of ICT's own people under clutter 2 (seed 7) was posed 0.5° off but 14.6 mm
 and the register default fitted it 12.7 mm off on the face: the polish's pose still moved ~1 mm a
 step when it stopped. A settling polish goes on while a step moves the model more than SETTLED, up
 to SETTLE_MOST steps (statfit/registration/pose/refinement.py). Each case runs ``estimate_pose`` (one
-thread) both ways in one process, and keeps the decision (ok / warn / refuse), the pose's angle
-from the truth, for a model's own people the offset of its mean shape from the truth's place and
-the register default's mean vertex error, and each search's seconds.
+thread) three ways in one process (``VARIANTS``), and keeps the check's facts and decision (ok /
+warn / refuse), the pose's angle from the truth, the person's offset from their place (the mean
+offset of their own vertices), for a model's own people the register default's mean vertex error,
+and each search's seconds.
 
 - people: realistic scans (benchmarks/families.py; one view, yaw within ±40°, any rotation and
   offset, mm, 4,300 points on the person, clutter 0, 0.5 and 2 per person point) of four families
@@ -21,7 +22,7 @@ the settled polishes had let through (docs/studies.md §41). A rerun includes th
 
     python studies/polish_settle.py [--report]
 
-~30 min on 2 cores; rows in studies/results/polish_settle.json.
+~40 min on 2 cores; rows in studies/results/polish_settle.json.
 """
 from __future__ import annotations
 
@@ -75,6 +76,7 @@ def run_case(model_name: str, subject: str, seed: int, clutter: float) -> dict:
     from pose_refusals import shape_scan
 
     from statfit.registration.job import register
+    from statfit.registration.pose.hypotheses import angle_between
     from statfit.structures.scan import Scan
     from statfit.synth.scanner import realistic_scan
 
@@ -96,8 +98,7 @@ def run_case(model_name: str, subject: str, seed: int, clutter: float) -> dict:
         row.update({f"{key}_{variant}": value for key, value in searched.items()})
         if found is None or made is None:
             continue
-        turn = found.transform.rotation.T @ made.transform.rotation
-        row[f"degrees_{variant}"] = float(np.degrees(np.arccos(np.clip((np.trace(turn) - 1) / 2, -1, 1))))
+        row[f"degrees_{variant}"] = angle_between(found.transform.rotation, made.transform.rotation)
         own = person(subject, seed)     # the person's place: the mean offset of their own vertices
         offset = (found.transform.apply(own) - made.transform.apply(own)).mean(axis=0)
         row[f"offset_mm_{variant}"] = float(np.linalg.norm(offset))
@@ -138,12 +139,6 @@ def runs() -> list[tuple]:
 
 def _right(row: dict, variant: str) -> bool:
     return row.get(f"degrees_{variant}", 180.0) < RIGHT_DEGREES
-
-
-def _stat(values: list[float]) -> str:
-    import numpy as np
-
-    return f"{np.mean(values):.2f} / {np.median(values):.2f} / {max(values):.2f}" if values else "–"
 
 
 def report(rows: list[dict]) -> str:
