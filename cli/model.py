@@ -273,7 +273,7 @@ def info(
     refuse_missing({}, model_path)
 
     # The library loads once the paths are known good: a mistyped name is refused at once.
-    from statfit.model.importers import LIGHT_FACE_COUNT, LIGHT_LANDMARKS, unread_npz_keys
+    from statfit.model.importers import unread_npz_keys
     from statfit.model.importers.cache import open_model
     from statfit.model.statmodel import units_guess
 
@@ -307,7 +307,3 @@ def info(
             value = f"{value:.4g}"
         table.add_row(key.replace("_", " "), str(value))
     Console().print(table)
-    if {LIGHT_LANDMARKS, LIGHT_FACE_COUNT} & set(report["unread_keys"]):
-        print(f"{LIGHT_LANDMARKS} and {LIGHT_FACE_COUNT} (the light ICT-FaceKit layout) are not read by fitting "
-              f"commands; `statfit model import {model_path} -o OUT.npz` stores them as the model's landmarks and "
-              "face geometry (region face_geometry).")

@@ -175,15 +175,25 @@ def _light_layout_model(path: Path, face_count=40, landmarks=None) -> Path:
     return path
 
 
-def test_the_light_ict_layouts_landmarks_and_face_are_named_by_info_and_kept_by_import(tmp_path, capsys):
+def test_the_light_ict_layouts_landmarks_and_face_are_read_by_every_command_and_kept_by_import(
+        scan_files, tmp_path, capsys):
+    """The light ICT-FaceKit npz (../shared/data/ict-face) as ``--model``: its ``landmarks68`` are the
+    model's landmarks and ``face_vertex_count`` its ``face_geometry`` region, for every command as for
+    ``model import``; the contract's own reader leaves them out."""
     light = _light_layout_model(tmp_path / "light.npz")
     landmarks = load_model(default_model_path()).landmarks
-    plain = load_model(light)  # fitting commands read the contract alone: nothing changes under them
+    plain = load_model(light)
     assert plain.landmarks is None and plain.regions == {}
     code, out, _ = run(["model", "info", str(light), "--json"], capsys)
-    assert code == 0 and json.loads(out)["unread_keys"] == ["face_vertex_count", "landmarks68"]
-    code, out, _ = run(["model", "info", str(light)], capsys)
-    assert code == 0 and f"statfit model import {light} -o OUT.npz" in out.replace("\n", "")
+    report = json.loads(out)
+    assert code == 0 and report["unread_keys"] == [] and report["landmarks"] == landmarks.size
+    assert report["regions"] == {"face_geometry": 40}
+    # register takes scan landmarks with it: before, "the model has no landmarks", exit 2
+    scan, gt = scan_files
+    np.savetxt(tmp_path / "scan_landmarks.txt", trimesh.load(gt, process=False).vertices[landmarks])
+    code, _, err = run(["register", str(scan), "--model", str(light), "--landmarks", str(tmp_path / "scan_landmarks.txt"),
+                        "-o", str(tmp_path / "fit.ply"), *FAST], capsys)
+    assert code == 0, err
     code, out, err = run(["model", "import", str(light), "-o", str(tmp_path / "imported.npz")], capsys)
     assert code == 0, err
     assert f"{landmarks.size} landmarks, regions face_geometry" in out
@@ -198,6 +208,14 @@ def test_the_light_ict_layouts_landmarks_and_face_are_named_by_info_and_kept_by_
     assert run(["model", "import", str(light), "--landmarks", str(tmp_path / "mine.txt"), "-o",
                 str(tmp_path / "mine.npz")], capsys)[0] == 0
     np.testing.assert_array_equal(load_model(tmp_path / "mine.npz").landmarks, [0, 1, 2, 3])
+
+
+def test_a_bad_light_layout_is_refused_by_a_fitting_command_in_one_line(scan_files, tmp_path, capsys):
+    scan, _ = scan_files
+    code, _, err = run(["register", str(scan), "--model", str(_light_layout_model(tmp_path / "m.npz", 10**6)),
+                        "-o", str(tmp_path / "fit.ply"), *FAST], capsys)
+    assert code == 2 and "face_vertex_count must be one whole number" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "fit.ply").exists()
 
 
 def _tetra(t: Path, name: str, faces: list) -> Path:

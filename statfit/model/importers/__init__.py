@@ -83,7 +83,7 @@ def _import(path: str | Path, *, k: int | None, expressions: bool, region: str |
     if expressions and kind in ("statfit", "ict"):
         raise StatfitError(f"{path}: --expressions applies to FLAME, SMPL-X and BFM models")
     if kind == "statfit":
-        return _with_light_keys(load_model(path, k), Path(path))
+        return with_light_keys(load_model(path, k), Path(path))
     if kind == "ict":
         return import_ict(path, k=k, region=region)
     if kind == "bfm":
@@ -93,16 +93,17 @@ def _import(path: str | Path, *, k: int | None, expressions: bool, region: str |
 
 
 def unread_npz_keys(path: str | Path) -> list[str]:
-    """The keys of a statfit npz that fitting commands do not read (sorted; [] for other formats), e.g.
-    an exporter's own names for landmarks or regions."""
+    """The keys of a statfit npz that no command reads (sorted; [] for other formats), e.g. an
+    exporter's own names for landmarks or regions."""
     path = Path(path)
     if model_format(path) != "statfit":
         return []
     keys, _ = _read_npz(path)
-    return sorted(key for key in keys if key not in CONTRACT_KEYS + OPTIONAL_KEYS and not key.startswith("region_"))
+    read = CONTRACT_KEYS + OPTIONAL_KEYS + (LIGHT_LANDMARKS, LIGHT_FACE_COUNT)
+    return sorted(key for key in keys if key not in read and not key.startswith("region_"))
 
 
-def _with_light_keys(model: StatModel, path: Path) -> StatModel:
+def with_light_keys(model: StatModel, path: Path) -> StatModel:
     """``model`` with the light ICT-FaceKit npz's landmarks and face geometry (as the region
     ``face_geometry``), where it has them and not the contract's own."""
     _, arrays = _read_npz(path, (LIGHT_LANDMARKS, LIGHT_FACE_COUNT))

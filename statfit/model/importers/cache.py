@@ -8,7 +8,7 @@ import os
 from pathlib import Path
 
 from statfit.errors import StatfitError
-from statfit.model.importers import import_model, model_format
+from statfit.model.importers import import_model, model_format, with_light_keys
 from statfit.model.statmodel import StatModel, default_model_path, load_model, save_model
 
 
@@ -29,12 +29,13 @@ def content_key(path: Path, options: dict) -> str:
 def open_any_model(path: str | Path, *, k: int | None = None, folder: Path | None = None,
                    **options) -> StatModel:
     """The model at ``path`` in any format (first ``k`` modes): an npz in the contract is read
-    directly; another format is imported with ``options`` once and cached in
+    directly (with the light ICT-FaceKit layout's landmarks and face geometry, :func:`with_light_keys`);
+    another format is imported with ``options`` once and cached in
     ``folder/models/<sha256>.npz`` (default folder: :func:`cache_dir`). A damaged cache entry is
     rebuilt; a cache that cannot be written is skipped."""
     path = Path(path)
     if model_format(path) == "statfit":
-        return load_model(path, k)
+        return with_light_keys(load_model(path, k), path)
     entry = (folder or cache_dir()) / "models" / f"{content_key(path, options)}.npz"
     try:
         model = dataclasses.replace(load_model(entry), source=f"{path} (cached {entry.name[:12]})")
