@@ -21,8 +21,9 @@ CONTRACT_KEYS = ("v_template", "faces", "shapedirs")
 # What a statfit npz holds besides: read by every command (``load_model``).
 OPTIONAL_KEYS = ("landmarks", "kind")
 # The light ICT-FaceKit npz (../shared/data/ict-face, its README): its 68 Multi-PIE landmark vertices and
-# the face geometry's vertex count (vertices [0, count)). ``model import`` stores them as the contract's
-# ``landmarks`` and ``region_face_geometry``; a plain load leaves them out, as any key it does not read.
+# the face geometry's vertex count (vertices [0, count)). Every command's ``--model`` reads them as the
+# contract's ``landmarks`` and ``region_face_geometry`` (:func:`with_light_keys`), and ``model import``
+# stores them so; the contract's own reader (``load_model``) leaves them out, as any key it does not read.
 # Not as ``region_face``: the hair rules of a cluttered scan take a ``face`` region as the face
 # (statfit.model.statmodel.face_triangles), and ICT's face geometry reaches over the forehead to the
 # scalp and ears — the face error of cluttered ICT scans was 0.96 mm with it as ``face`` against 0.39 mm
