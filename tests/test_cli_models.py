@@ -288,3 +288,26 @@ def test_bad_input_gives_one_line_and_exit_2(case, scan_files, tmp_path, capsys)
     assert err.startswith("statfit: error: ") and err.count("\n") == 1, err
     assert {p: p.read_bytes() for p in [scan, *tmp_path.rglob("*")] if p.is_file()} == before  # nothing written or changed
     assert not (tmp_path / "pwned").exists()
+
+
+def test_a_cluttered_scan_under_a_model_without_a_face_says_how_to_keep_the_fit_to_the_face(tmp_path, capsys,
+                                                                                         embedded_model):
+    """A model with neither landmarks nor a face region cannot keep a cluttered scan's fit to the
+    face (ICT's people under clutter 2: 5.25 mm on the face without, 1.41 with; docs/studies.md §42):
+    register says so in one line when the pose search finds the clutter, and only then."""
+    from statfit.synth.scanner import realistic_scan
+
+    bare = tmp_path / "bare.npz"
+    arrays = model_arrays(embedded_model)
+    np.savez(bare, **{k: v for k, v in arrays.items() if k != "landmarks" and not k.startswith("region_")})
+    for clutter in (2.0, 0.0):
+        rng = np.random.default_rng(1)
+        made = realistic_scan(embedded_model.sample(rng, 1.0), embedded_model.faces, rng, 1500, clutter=clutter)
+        scan = tmp_path / f"scan{clutter}.ply"
+        trimesh.Trimesh(made.vertices, made.faces, process=False).export(scan)
+        for model in (bare, default_model_path()):
+            code, _, err = run(["register", str(scan), "--model", str(model), "-o", str(tmp_path / "fit.ply"), *FAST],
+                               capsys)
+            assert code == 0, err
+            warned = [line for line in err.splitlines() if "neither landmarks nor a face region" in line]
+            assert len(warned) == (clutter > 0 and model == bare), (clutter, model, err)

@@ -183,6 +183,11 @@ class PosedScan:
                           "fit, or give --landmarks", StatfitWarning, stacklevel=3)
         if clutter is None:   # the pose search found points no shape of the model explains
             clutter = pose is not None and pose["matched"] < CLUTTER_MATCHED
+            if clutter and region is None and face_triangles(model) is None:
+                warnings.warn(f"the model explains {pose['matched']:.0%} of the scan's points (clutter such as hair, "
+                              "neck or shoulders, or a person outside the model) and has neither landmarks nor a "
+                              "face region to keep the fit to the face: give it either (statfit model import MODEL "
+                              "--landmarks FILE, or --masks FILE with a face region)", StatfitWarning, stacklevel=3)
         return cls(model, scan, points, transform, pose, shape if plan.start_from_pose else None, plan.device, dtype,
                    plan.trim, plan.refresh_every, region, region_faces, clutter, landmarks, shared)
 
