@@ -21,8 +21,8 @@ def inpaint(
     method: str = typer.Option(None, help="hybrid (default with --model: model modes + smooth diffusion), statistical "
                                "(model modes), pca (model coefficients only), laplacian (default without a model: "
                                "diffusion only) or none (holes keep the start colour).", show_default=False),
-    out: Path = typer.Option(None, "--out", "-o", help="Filled image: .png/.jpg (8-bit) or .exr (float). "
-                             "Default: <image>_filled.png here.", show_default=False),
+    out: Path = typer.Option(None, "--out", "-o", help="Filled image: .png (16-bit from a 16-bit PNG or "
+                             "an EXR, else 8-bit), .jpg (8-bit) or .exr (float). Default: <image>_filled.png here.", show_default=False),
     log: Path = LogOption,
     preview: Path = typer.Option(None, help="PNG: input with holes checkered | result | model-only reconstruction.",
                                  show_default=False),
@@ -69,7 +69,7 @@ def inpaint(
 
     # The library loads once the paths are known good: a mistyped name is refused at once.
     from statfit.core.device import resolve_device
-    from statfit.io.image import encoded_image, read_charts, read_image, read_mask
+    from statfit.io.image import encoded_image, read_charts, read_image, read_mask, sample_bits
     from statfit.texture.inpaint import inpaint as fill, inpaint_settings
     from statfit.texture.model import load_texture_model
     from statfit_cli.runner import finish, fit_run
@@ -77,6 +77,7 @@ def inpaint(
     settings = inpaint_settings(method, iterations, lr, beta, lam)
     torch_device = resolve_device(device)
     image = read_image(image_path)
+    bits = 16 if sample_bits(image_path) > 8 else 8     # a PNG out keeps a deeper input's precision
     visible = read_mask(mask) != mask_invert
     labels = read_charts(charts) if charts is not None else None
     model = load_texture_model(model_path) if model_path is not None else None
@@ -90,7 +91,7 @@ def inpaint(
     summary = {"input": str(image_path), "output": str(out), "method": method, "iterations": settings.iterations,
                "width": image.shape[1], "height": image.shape[0], "channels": image.shape[2],
                "hole_pixels": int((~visible).sum()), "final_loss": result.loss, "seconds": result.seconds}
-    outputs = {out: encoded_image(result.result, image_suffix(out))}
+    outputs = {out: encoded_image(result.result, image_suffix(out), bits)}
     if preview is not None:
         from statfit.texture.preview import preview_png
         outputs[preview] = preview_png(image, visible, result.result, result.model_only)

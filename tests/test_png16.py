@@ -98,3 +98,49 @@ def test_a_cut_16_bit_png_is_refused_in_one_line(tmp_path, capsys):
     code, _, err = run(["render", str(path), "--camera", str(camera), "--out", str(tmp_path / "f.ply")], capsys)
     assert code == 2 and len(err.strip().splitlines()) == 1 and "n.png" in err, err
     assert not (tmp_path / "f.ply").exists()
+
+
+@pytest.mark.parametrize("channels", [1, 3, 4])
+def test_statfits_16_bit_png_writer_is_read_as_written(tmp_path, channels):
+    """Pillow writes no 16-bit colour PNG; statfit's own writer (statfit.io.image.png16_bytes): Pillow
+    opens its files as the right mode and reads the high bytes, statfit's reader every sample."""
+    from statfit.io.image import png16_bytes, sample_bits
+
+    samples = np.random.default_rng(channels).integers(0, 65536, (23, 17, channels), dtype=np.uint16)
+    path = tmp_path / "t.png"
+    path.write_bytes(png16_bytes(samples))
+    with Image.open(path) as image:
+        assert image.mode == {1: "I;16", 3: "RGB", 4: "RGBA"}[channels] and image.size == (17, 23)
+        if channels > 1:
+            np.testing.assert_array_equal(np.asarray(image), samples >> 8)
+    np.testing.assert_array_equal(np.round(read_image(path) * 65535.0).astype(np.uint16), samples)
+    assert sample_bits(path) == 16
+
+
+def test_inpaint_of_a_16_bit_png_writes_16_bits(tmp_path, capsys):
+    """`statfit inpaint` keeps a 16-bit input's precision in a PNG out: its visible pixels come back
+    to the sample (8 bits would round them by up to 128 steps of 65,535); an 8-bit input still gives
+    an 8-bit PNG."""
+    from test_cli import run
+    from statfit.io.image import sample_bits
+
+    rng = np.random.default_rng(5)
+    u = np.linspace(0.0, 1.0, 40)
+    smooth = np.stack([np.outer(u, u), np.outer(u, 1 - u), np.outer(1 - u, u)], axis=-1)
+    samples = np.round(smooth * 60000 + rng.integers(0, 256, smooth.shape)).astype(np.uint16)
+    image, mask = tmp_path / "t16.png", tmp_path / "mask.png"
+    image.write_bytes(png_bytes(samples))
+    visible = np.ones((40, 40), dtype=bool)
+    visible[12:20, 15:25] = False
+    Image.fromarray((visible * 255).astype(np.uint8)).save(mask)
+    code, _, err = run(["inpaint", str(image), "--mask", str(mask), "--iterations", "50", "-q", "--out",
+                        str(tmp_path / "out16.png")], capsys)
+    assert code == 0, err
+    assert sample_bits(tmp_path / "out16.png") == 16
+    filled = np.round(read_image(tmp_path / "out16.png") * 65535.0).astype(np.int64)
+    np.testing.assert_array_equal(filled[visible], samples[visible])
+    Image.fromarray((samples >> 8).astype(np.uint8)).save(tmp_path / "t8.png")
+    code, _, err = run(["inpaint", str(tmp_path / "t8.png"), "--mask", str(mask), "--iterations", "50", "-q",
+                        "--out", str(tmp_path / "out8.png")], capsys)
+    assert code == 0, err
+    assert sample_bits(tmp_path / "out8.png") == 8

@@ -14,7 +14,9 @@ second place), and the two put together.
 from __future__ import annotations
 
 import io
+import struct
 import warnings
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -115,9 +117,11 @@ def _read_exr(path: Path) -> np.ndarray:
     raise StatfitError(f"{path} has neither R, G, B nor Y channels; it has {', '.join(sorted(channels)) or 'none'}")
 
 
-def image_bytes(image: np.ndarray, suffix: str) -> bytes:
-    """``image`` (H, W, C) in [0, 1] encoded as 8-bit PNG or JPEG (``suffix`` .png/.jpg/.jpeg;
-    values are clipped; JPEG drops alpha)."""
+def image_bytes(image: np.ndarray, suffix: str, bits: int = 8) -> bytes:
+    """``image`` (H, W, C) in [0, 1] encoded as PNG (``bits`` 8 or 16 a sample) or 8-bit JPEG
+    (``suffix`` .png/.jpg/.jpeg; values are clipped; JPEG drops alpha)."""
+    if suffix == ".png" and bits == 16:
+        return png16_bytes(np.round(np.clip(image, 0.0, 1.0) * 65535.0).astype(np.uint16))
     data = np.round(np.clip(image, 0.0, 1.0) * 255.0).astype(np.uint8)
     data = data[..., 0] if data.shape[-1] == 1 else data
     if suffix == ".png":
@@ -131,14 +135,45 @@ def image_bytes(image: np.ndarray, suffix: str) -> bytes:
     return buffer.getvalue()
 
 
-def encoded_image(image: np.ndarray, suffix: str) -> bytes:
-    """``image`` (H, W, C), C in 1/3/4, as the bytes of a file: float EXR for ``.exr``, else 8-bit
-    PNG/JPEG (:func:`image_bytes`)."""
+# PNG colour types by channels: grey, RGB, RGBA.
+PNG_COLOUR_TYPES = {1: 0, 3: 2, 4: 6}
+
+
+def png16_bytes(samples: np.ndarray) -> bytes:
+    """A 16-bit PNG of ``samples`` (H, W, C) uint16, C in 1/3/4 (Pillow writes no 16-bit colour):
+    the PNG specification's IHDR, one zlib stream of big-endian rows each filtered by "Up" (its bytes
+    less the row above's, mod 256: a smooth texture's file half the size of unfiltered rows'), IEND."""
+    height, width, channels = samples.shape
+    raw = samples.astype(">u2").reshape(height, -1).view(np.uint8)
+    rows = np.full((height, 1 + raw.shape[1]), 2, dtype=np.uint8)          # filter type 2 (Up) a row
+    rows[:, 1:] = raw
+    rows[1:, 1:] -= raw[:-1]
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    header = struct.pack(">IIBBBBB", width, height, 16, PNG_COLOUR_TYPES[channels], 0, 0, 0)
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(rows.tobytes(), 6))
+            + chunk(b"IEND", b""))
+
+
+def sample_bits(path: str | Path) -> int:
+    """Bits a sample of the image file at ``path``: 8, 16 (a 16-bit PNG) or 32 (float EXR)."""
+    path = Path(path)
+    if is_exr(path):
+        return 32
+    return _opened(path, "image", lambda image, _: 16 if _png_rawmode(image) in LOW_BYTES
+                   or image.mode in ("I;16", "I;16B", "I;16L", "I") else 8)
+
+
+def encoded_image(image: np.ndarray, suffix: str, bits: int = 8) -> bytes:
+    """``image`` (H, W, C), C in 1/3/4, as the bytes of a file: float EXR for ``.exr``, else PNG
+    (``bits`` 8 or 16 a sample) or 8-bit JPEG (:func:`image_bytes`)."""
     if image.ndim != 3 or image.shape[-1] not in EXR_CHANNELS:
         raise StatfitError(f"cannot write an image of shape {image.shape}: need (H, W, 1, 3 or 4)")
     if suffix == ".exr":
         return exr_bytes({c: image[..., i] for i, c in enumerate(EXR_CHANNELS[image.shape[-1]])})
-    return image_bytes(image, suffix)
+    return image_bytes(image, suffix, bits)
 
 
 def write_image(path: str | Path, image: np.ndarray) -> None:
