@@ -21,8 +21,9 @@ def inpaint(
     method: str = typer.Option(None, help="hybrid (default with --model: model modes + smooth diffusion), statistical "
                                "(model modes), pca (model coefficients only), laplacian (default without a model: "
                                "diffusion only) or none (holes keep the start colour).", show_default=False),
-    out: Path = typer.Option(None, "--out", "-o", help="Filled image: .png (16-bit from a 16-bit PNG or "
-                             "an EXR, else 8-bit), .jpg (8-bit) or .exr (float). Default: <image>_filled.png here.", show_default=False),
+    out: Path = typer.Option(None, "--out", "-o", help="Filled image: .png (16-bit from a 16-bit PNG or an EXR, "
+                             "else 8-bit), .jpg (8-bit) or .exr (float). Default: <image>_filled.png here.",
+                             show_default=False),
     log: Path = LogOption,
     preview: Path = typer.Option(None, help="PNG: input with holes checkered | result | model-only reconstruction.",
                                  show_default=False),

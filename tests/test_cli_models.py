@@ -191,8 +191,8 @@ def test_the_light_ict_layouts_landmarks_and_face_are_read_by_every_command_and_
     # register takes scan landmarks with it: before, "the model has no landmarks", exit 2
     scan, gt = scan_files
     np.savetxt(tmp_path / "scan_landmarks.txt", trimesh.load(gt, process=False).vertices[landmarks])
-    code, _, err = run(["register", str(scan), "--model", str(light), "--landmarks", str(tmp_path / "scan_landmarks.txt"),
-                        "-o", str(tmp_path / "fit.ply"), *FAST], capsys)
+    code, _, err = run(["register", str(scan), "--model", str(light), "--landmarks",
+                        str(tmp_path / "scan_landmarks.txt"), "-o", str(tmp_path / "fit.ply"), *FAST], capsys)
     assert code == 0, err
     code, out, err = run(["model", "import", str(light), "-o", str(tmp_path / "imported.npz")], capsys)
     assert code == 0, err
