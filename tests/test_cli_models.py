@@ -305,7 +305,7 @@ def test_a_cluttered_scan_under_a_model_without_a_face_says_how_to_keep_the_fit_
         made = realistic_scan(embedded_model.sample(rng, 1.0), embedded_model.faces, rng, 1500, clutter=clutter)
         scan = tmp_path / f"scan{clutter}.ply"
         trimesh.Trimesh(made.vertices, made.faces, process=False).export(scan)
-        for model in (bare, default_model_path()):
+        for model in (bare, default_model_path()) if clutter else (bare,):   # no face, no clutter: no line
             code, _, err = run(["register", str(scan), "--model", str(model), "-o", str(tmp_path / "fit.ply"), *FAST],
                                capsys)
             assert code == 0, err
