@@ -8,9 +8,10 @@ ICT model carrying four kinds of face:
 
 - ``face geometry + 68 landmarks``: ICT's face geometry as ``region_face`` and its 68 landmarks (what a
   folder import with landmarks added gives);
-- ``68 landmarks``: the 68 landmarks alone (what ``model import`` of the light npz gives);
+- ``68 landmarks``: the 68 landmarks alone (what ``model import`` of the light npz gives, and since
+  session 38 every command's ``--model``);
 - ``51 inner landmarks``: Multi-PIE 17–67 alone (docs/benchmarks.md §8's model);
-- ``neither``: the light npz as it is loaded.
+- ``neither``: the light npz as ``load_model`` (the contract's reader) reads it.
 
 Score: mean distance (mm) of the fit's vertices within 3 cm of an inner landmark to the truth.
 
