@@ -43,7 +43,7 @@ CHOSEN_ON = ("ict", "ict", 7, 2.0)      # (model, people, seed, clutter)
 VARIANTS = {"before": (), "pass 2": ("region",), "both": ("region", "final")}
 
 
-def _search(model, scan, variant: str) -> dict:
+def search_with_variant(model, scan, variant: str) -> dict:
     """``estimate_pose`` with ``variant``'s polishes settling, the refusal check wrapped so the search
     runs to its end: the estimate (None: refused before the check), the check's facts and decision,
     the seconds."""
@@ -93,7 +93,7 @@ def run_case(model_name: str, subject: str, seed: int, clutter: float) -> dict:
         scan = shape_scan(model_name, subject, seed)
     fits = {}       # the register default's error by pose (a pose unchanged by a variant is not refitted)
     for variant in VARIANTS:
-        searched = _search(model, scan, variant)
+        searched = search_with_variant(model, scan, variant)
         found = searched.pop("found")
         row.update({f"{key}_{variant}": value for key, value in searched.items()})
         if found is None or made is None:

@@ -30,7 +30,7 @@ def run_case(family: str, seed: int, points: int, clutter: float) -> dict:
     import numpy as np
     import torch
     from families import family_model, person
-    from polish_settle import _search
+    from polish_settle import search_with_variant
 
     from statfit.registration.pose.hypotheses import angle_between
     from statfit.structures.scan import Scan
@@ -44,7 +44,7 @@ def run_case(family: str, seed: int, points: int, clutter: float) -> dict:
     scan = Scan.from_mesh(made.vertices, made.faces)
     row = {"family": family, "seed": seed, "points": points, "clutter": clutter}
     for variant in VARIANTS:
-        searched = _search(model, scan, variant)
+        searched = search_with_variant(model, scan, variant)
         found = searched.pop("found")
         row[f"decision_{variant}"], row[f"seconds_{variant}"] = searched["decision"], searched["seconds"]
         if found is not None:
