@@ -72,6 +72,8 @@ def _opened(path: Path, what: str, decode) -> np.ndarray:
 
 # The rawmode of a 16-bit colour PNG's samples (big-endian) → the rawmode reading their low bytes.
 LOW_BYTES = {"RGB;16B": "RGB;16L", "RGBA;16B": "RGBA;16L"}
+# Pillow's modes of a 16-bit grey image.
+SIXTEEN_BIT_GREY = ("I;16", "I;16B", "I;16L", "I")
 
 
 def _decoded(image: Image.Image, path: Path) -> np.ndarray:
@@ -80,7 +82,7 @@ def _decoded(image: Image.Image, path: Path) -> np.ndarray:
     if rawmode in LOW_BYTES:
         return _sixteen_bit_colour(image, path, rawmode)
     image.load()
-    if image.mode in ("I;16", "I;16B", "I;16L", "I"):
+    if image.mode in SIXTEEN_BIT_GREY:
         return (np.asarray(image, dtype=np.float32) / 65535.0)[..., None]
     if image.mode not in ("L", "RGB", "RGBA"):
         image = image.convert("RGBA" if "A" in image.getbands() or "transparency" in image.info else "RGB")
@@ -163,7 +165,7 @@ def sample_bits(path: str | Path) -> int:
     if is_exr(path):
         return 32
     return _opened(path, "image", lambda image, _: 16 if _png_rawmode(image) in LOW_BYTES
-                   or image.mode in ("I;16", "I;16B", "I;16L", "I") else 8)
+                   or image.mode in SIXTEEN_BIT_GREY else 8)
 
 
 def encoded_image(image: np.ndarray, suffix: str, bits: int = 8) -> bytes:
