@@ -1,17 +1,19 @@
 """End to end on the real ICT head model: one normal map (yaw 20°) of an identity sample plus the
 jawOpen expression (outside the identity model); every fit is scored against the ground truth over
 all vertices. The test renders 128² to keep the suite short (the fits take a third of the 256²
-time), where the four fits measured (session 9, the rigid alignment fitting the coefficients at its
-own step): paper statistical 0.0502, paper laplacian 0.0470, tuned pca 0.0452, the default 0.0421,
-the template 0.1448.
+time), where the fits measured (session 9, the rigid alignment fitting the coefficients at its own
+step): tuned pca 0.0452, the default 0.0421, the template 0.1448; the tuned hybrid 0.0416
+(docs/studies.md §13: on this case the default loses to it, and has the lowest mean over §11's four
+faces).
 
-From that converged start the paper's Laplacian filter is the closer of the paper's two here (at
-the pose's step, until session 9: statistical 0.0548, laplacian 0.0619), and closer on average over
-the rendering study's four faces at 256² (0.0183 against 0.0194; docs/studies.md §13): the paper's
-comparison is no longer asserted, only that both fit what the model lacks.
+The paper's two filters are not fitted here any more (session 39; 80 s a fit, a third of the file).
+From the alignment's converged start (0.0465) both only drift away at 3,000 iterations (error at
+iteration 250, 1,000 and 3,000: paper `statistical` 0.0458, 0.0476, 0.0505; paper `laplacian`
+0.0452, 0.0458, 0.0472; docs/studies.md §13), so "both fit the jaw the model lacks" held by the
+alignment alone and could not fail through the filters; the default's lead over them is wider than
+over tuned pca, which stays.
 
-The four 3000-iteration fits run two at a time, one thread each: at 256² a fit gains little from a
-second thread, so this halves the wall time on a 2-core machine.
+The two fits run side by side, one thread each.
 """
 from __future__ import annotations
 
@@ -24,8 +26,7 @@ from conftest import ICT_DIR, run_two_at_a_time
 pytestmark = pytest.mark.slow
 
 SIZE = 128
-RUNS = {"paper statistical": ("statistical", "paper"), "paper laplacian": ("laplacian", "paper"),
-        "tuned pca": ("pca", "tuned"), "default": ("default", "tuned")}
+RUNS = {"tuned pca": ("pca", "tuned"), "default": ("default", "tuned")}
 
 
 def fit_error(method: str, preset: str) -> float:
@@ -60,11 +61,6 @@ def errors(ict_model):
     return run_two_at_a_time(fit_error, RUNS) | {"template": fit_error("template", "")}
 
 
-def test_the_papers_filters_both_fit_the_jaw_the_model_lacks(errors):
-    assert errors["paper statistical"] < 0.5 * errors["template"], errors
-    assert errors["paper laplacian"] < 0.5 * errors["template"], errors
-
-
-def test_default_beats_every_method_it_was_compared_with(errors):
-    others = {k: v for k, v in errors.items() if k != "default"}
-    assert errors["default"] < min(others.values()), errors
+def test_the_default_fits_closer_than_tuned_pca_and_far_closer_than_the_template(errors):
+    assert errors["default"] < errors["tuned pca"], errors
+    assert errors["default"] < 0.35 * errors["template"], errors
