@@ -188,32 +188,47 @@ def normal_angle(fit: np.ndarray, gt: np.ndarray, faces: np.ndarray, where: np.n
 
 
 def run_case(task: tuple[int, float, float, str, int], iterations: int | None = None,
-             align_shape_lr: float | None = None) -> dict:
+             align_shape_lr: float | None = None, also_at: tuple[int, ...] = ()) -> dict:
     """One fit of a held-out body from one view; ``iterations`` other than the method's (tests);
-    ``align_shape_lr`` the rigid alignment's step on the coefficients (None: as shipped)."""
+    ``align_shape_lr`` the rigid alignment's step on the coefficients (None: as shipped);
+    ``also_at``: iteration counts (multiples of 10) whose rows come too, under "at", from the
+    fit's own snapshots: the row a shorter fit of a method with a constant step would give."""
     seed, yaw, pitch, method, size = task
     import torch
 
     torch.set_num_threads(1)
     import statfit.render.job
-    from statfit.geometry.align import umeyama
-    from statfit.render.job import reconstruct
     from statfit.geometry.metrics import visible_vertices
+    from statfit.render.job import reconstruct
 
     if align_shape_lr is not None:
         statfit.render.job.SHAPE_LR = align_shape_lr
 
     model, gt, camera, normal_map = view(seed, yaw, pitch, size)
+    snapshots: dict[int, np.ndarray] = {}
+    keep = lambda it, vertices: snapshots.update({it: vertices.copy()} if it in also_at else {})  # noqa: E731
     started = time.perf_counter()
     overrides = {} if iterations is None else {"iterations": iterations}
-    fit = reconstruct(model, normal_map, camera, method, threads=1, **(overrides | schedule(method))).vertices
+    fit = reconstruct(model, normal_map, camera, method, threads=1, on_snapshot=keep,
+                      **(overrides | schedule(method))).vertices
     seconds = time.perf_counter() - started
     seen = visible_vertices(gt, model.faces, camera)
+    row = {"seed": seed, "yaw": yaw, "pitch": pitch, "method": method, "size": size, "seconds": seconds,
+           "seen_share": float(seen.mean()), **_errors(model, fit, gt, camera, seen)}
+    if also_at:
+        row["at"] = {it: _errors(model, snapshots[it], gt, camera, seen) for it in also_at}
+    return row
+
+
+def _errors(model, fit: np.ndarray, gt: np.ndarray, camera, seen: np.ndarray) -> dict:
+    """The row's errors of ``fit`` (N, 3) against ``gt``: raw, scaled and aligned (mm; all, seen
+    and unseen vertices), the unseen side's distance from the span and its normals' angle."""
+    from statfit.geometry.align import umeyama
+
     centre = -camera.rotation.numpy().T @ camera.world_to_camera[:3, 3].numpy()
     scaled = scale_about(fit, gt, centre)
     aligned = umeyama(fit, gt, with_scale=True).apply(fit)
-    row = {"seed": seed, "yaw": yaw, "pitch": pitch, "method": method, "size": size, "seconds": seconds,
-           "seen_share": float(seen.mean())}
+    row = {}
     for name, shape in (("raw", fit), ("scaled", scaled), ("aligned", aligned)):
         error = np.linalg.norm(shape - gt, axis=1) * 1000
         row[name] = {"all": float(error.mean()), "seen": float(error[seen].mean()),
