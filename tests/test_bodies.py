@@ -137,10 +137,9 @@ def test_the_model_reproduces_fresh_bodies_and_not_held_out_ones(space):
     held_out_errors = [in_span_error(model, body) for body in held_out]
     assert max(fresh_errors) < 0.0005  # bodies from the training distribution: within 0.5 mm on average
     assert min(held_out_errors) > 5 * max(fresh_errors)  # held-out bodies lie outside the span
-    # the same seed builds the same model (a small one: the same code at a tenth of the time)
-    small = [build_body_model(space, 20, 100, seed=0).model for _ in range(2)]
-    np.testing.assert_array_equal(small[0].basis, small[1].basis)
-    assert not np.array_equal(small[0].basis, build_body_model(space, 20, 100, seed=1).model.basis)
+    # the same seed builds the same model
+    again = build_body_model(space, 200, 1000, seed=0).model
+    np.testing.assert_array_equal(again.basis, model.basis)
 
 
 @needs_data
