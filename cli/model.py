@@ -178,18 +178,24 @@ def cut(
                                  show_default=False, callback=within(4, 10_000_000)),
     scale: float = typer.Option(1.0, "--scale", help="Multiply lengths by this factor (10: cm → mm).",
                                 callback=within(0, 1e6, above=True)),
+    rigid_free: bool = typer.Option(False, "--without-rigid-motion",
+                                    help="Take the modes' rigid motion out (after the cut). For a part whose modes "
+                                    "mostly move it, as a head cut from a body model rises with the body's height "
+                                    "(`model info`: rigid motion); not for other models (docs/studies.md §43)."),
     json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
 ) -> None:
-    """Another model made from MODEL: a region of it, fewer vertices, other units. Its modes are
-    re-derived from the original's on the kept vertices, so it describes the same people.
+    """Another model made from MODEL: a region of it, fewer vertices, other units, its modes without
+    rigid motion. Its modes are re-derived from the original's on the kept vertices, so it describes
+    the same people.
 
         statfit model cut ict.npz --region face --vertices 3000 --scale 10 -o face_mask_mm.npz
+        statfit model cut body.npz --region head --without-rigid-motion -o head.npz
     """
     _check_output(out, model_path)
     refuse_missing({}, model_path)
 
     # The library loads once the paths are known good: a mistyped name is refused at once.
-    from statfit.model.cut import decimated, region_part, rescaled
+    from statfit.model.cut import decimated, region_part, rescaled, without_rigid_motion
     from statfit.model.importers.cache import open_model
     from statfit.model.statmodel import save_model, units_guess
 
@@ -200,6 +206,8 @@ def cut(
         if vertices is not None:
             model = decimated(model, vertices)
     model = rescaled(model, scale)
+    if rigid_free:
+        model = without_rigid_motion(model)
     save_model(model, out)
     report = {"output": str(out), "vertices": model.num_vertices, "faces": int(len(model.faces)),
               "modes": model.num_modes, "landmarks": 0 if model.landmarks is None else int(model.landmarks.size),
@@ -273,6 +281,7 @@ def info(
     refuse_missing({}, model_path)
 
     # The library loads once the paths are known good: a mistyped name is refused at once.
+    from statfit.model.cut import rigid_motion_share
     from statfit.model.importers import unread_npz_keys
     from statfit.model.importers.cache import open_model
     from statfit.model.statmodel import units_guess
@@ -283,6 +292,7 @@ def info(
         "model": model.source, "vertices": model.num_vertices, "faces": int(len(model.faces)),
         "modes": model.num_modes, "std_first": float(model.std[0]), "std_last": float(model.std[-1]),
         "variance_explained": _explained(model.variance_explained(), False),
+        "rigid_motion_share": rigid_motion_share(model),
         "bbox_extent": extent.tolist(), "units_guess": units_guess(model.surface_template),
         "landmarks": 0 if model.landmarks is None else int(model.landmarks.size),
         "regions": {name: int(idx.size) for name, idx in model.regions.items()},
@@ -303,6 +313,8 @@ def info(
             value = ", ".join(value) or "-"
         elif isinstance(value, list):
             value = " × ".join(f"{v:.4g}" for v in value)
+        elif key == "rigid_motion_share":
+            value = f"{value:.1%} of the modes' variance"
         elif isinstance(value, float):
             value = f"{value:.4g}"
         table.add_row(key.replace("_", " "), str(value))

@@ -1,7 +1,7 @@
 """Other models made from one: a part of it (a face mask cut from a head), fewer vertices
-(decimated), other units. Each is again a model of the same people: the shapes of the original,
-seen on a subset of its vertices, so its modes are re-derived by SVD of the original's restricted
-to those vertices (a restricted basis is no longer orthonormal).
+(decimated), other units, its modes without rigid motion. Each is again a model of the same
+people: the shapes of the original, seen on a subset of its vertices, so its modes are re-derived by
+SVD of the original's restricted to those vertices (a restricted basis is no longer orthonormal).
 
 These make the model families statfit's defaults are checked on besides the ones they were chosen
 on (docs/studies.md): a face-mask model, the shape of BFM 2017 and most scanner-built models, is
@@ -96,3 +96,37 @@ def rescaled(model: StatModel, factor: float) -> StatModel:
         raise StatfitError(f"a model's scale factor must be a positive number, got {factor}")
     return StatModel(model.template * factor, model.faces, model.basis, model.std * factor, model.landmarks,
                      model.regions, model.source)
+
+
+def without_rigid_motion(model: StatModel) -> StatModel:
+    """The model with its modes' rigid motion taken out: from each mode (its direction times its
+    standard deviation) the least-squares small rigid motion of the template (a translation and a
+    rotation about the template's centroid) is subtracted, and the modes are re-derived by SVD.
+
+    A part cut from a larger model moves as the whole did: a head cut from a body model rises and
+    falls with the body's height, so most of its modes' variance is where the head is, not its shape
+    (MakeHuman's: 99.8%). A fit finds the pose itself; modes that move the part rigidly trade against
+    it. To first order every shape of the model is a rigid motion of a shape of this one. Modes left
+    with (almost) nothing are dropped; landmarks and regions are kept. Not for every model: on a face
+    mask (30% rigid) the default guessed the unseen half worse without it (docs/studies.md §43)."""
+    shaped = _less_rigid_motion(model)
+    return model_from_arrays(model.template, model.faces, shaped.reshape(model.num_vertices, 3, -1), model.landmarks,
+                             model.regions, source=f"{model.source} (without rigid motion)")
+
+
+def rigid_motion_share(model: StatModel) -> float:
+    """The share of the modes' variance that is small rigid motion of the template (0–1;
+    :func:`without_rigid_motion`)."""
+    return 1.0 - float((_less_rigid_motion(model) ** 2).sum() / (model.std**2).sum())
+
+
+def _less_rigid_motion(model: StatModel) -> np.ndarray:
+    """(3N, K): the modes (directions times standard deviations) less their least-squares small
+    rigid motion of the template (translations, and rotations about its centroid)."""
+    n = model.num_vertices
+    centred = model.template - model.template.mean(axis=0)
+    axes = np.eye(3)
+    fields = [np.broadcast_to(axis, (n, 3)) for axis in axes] + [np.cross(axis, centred) for axis in axes]
+    rigid, _ = np.linalg.qr(np.stack([field.reshape(-1) for field in fields], axis=1))    # (3N, 6) orthonormal
+    modes = model.basis * model.std
+    return modes - rigid @ (rigid.T @ modes)
