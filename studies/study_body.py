@@ -209,7 +209,7 @@ def run_case(task: tuple[int, float, float, str, int], iterations: int | None = 
     keep = lambda it, vertices: snapshots.update({it: vertices.copy()} if it in also_at else {})  # noqa: E731
     started = time.perf_counter()
     overrides = {} if iterations is None else {"iterations": iterations}
-    fit = reconstruct(model, normal_map, camera, method, threads=1, on_snapshot=keep,
+    fit = reconstruct(model, normal_map, camera, method, threads=1, on_snapshot=keep if also_at else None,
                       **(overrides | schedule(method))).vertices
     seconds = time.perf_counter() - started
     seen = visible_vertices(gt, model.faces, camera)
