@@ -108,7 +108,8 @@ def without_rigid_motion(model: StatModel) -> StatModel:
     (MakeHuman's: 99.8%). A fit finds the pose itself; modes that move the part rigidly trade against
     it. To first order every shape of the model is a rigid motion of a shape of this one. Modes left
     with (almost) nothing are dropped; landmarks and regions are kept. Not for every model: on a face
-    mask (30% rigid) the default guessed the unseen half worse without it (docs/studies.md §43)."""
+    mask (30% rigid) `register`'s default guessed the unseen half worse without it, though `render`
+    fitted closer (docs/studies.md §43)."""
     shaped = _less_rigid_motion(model)
     return model_from_arrays(model.template, model.faces, shaped.reshape(model.num_vertices, 3, -1), model.landmarks,
                              model.regions, source=f"{model.source} (without rigid motion)")

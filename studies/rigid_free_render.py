@@ -1,0 +1,71 @@
+"""A model's modes without rigid motion, in `render` (docs/studies.md §43): §18's cross-family
+protocol (studies/cross_family_render.py: a person of one family in one normal map at 256², fitted
+with a family's model by each method at its tuned settings, the default rigid alignment; distance of
+the person's surface points to the fit, % of their RMS radius) with MakeHuman's head model and ICT's
+face mask, each as built and without its modes' rigid motion, side by side, on the people of ICT,
+the mask and MakeHuman, 2 each.
+
+    python studies/rigid_free_render.py            # ~40 min on 2 cores
+    python studies/rigid_free_render.py --report
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from study_runs import study_main  # noqa: E402
+
+RESULTS = ROOT / "studies" / "results" / "rigid_free_render.json"
+PEOPLE = ("ict", "ict-mask", "makehuman")
+FREED = " without rigid motion"
+MODELS = ("makehuman", "ict-mask")     # as in studies/rigid_free_modes.py
+VARIANTS = tuple(name + suffix for name in MODELS for suffix in ("", FREED))
+SEEDS = (0, 1)
+SIZE = 256
+
+
+def _use_variants() -> None:
+    """``families.family_model`` (and its units) answer the variant's name too (in this process)."""
+    import families
+    from statfit.model.cut import without_rigid_motion
+
+    if getattr(families, "_variants_added", False):
+        return
+    plain = families.family_model
+
+    def family_model(name: str):
+        return without_rigid_motion(plain(name.removesuffix(FREED))) if name.endswith(FREED) else plain(name)
+
+    families.family_model, families._variants_added = family_model, True
+    for name in MODELS:
+        families.METRES_PER_UNIT[name + FREED] = families.METRES_PER_UNIT[name]
+
+
+def fit_case(people: str, variant: str, seed: int, method: str, size: int) -> dict:
+    _use_variants()
+    from cross_family_render import fit_case as fit_view
+
+    return fit_view(people, variant, seed, method, size)
+
+
+def runs() -> list[tuple]:
+    from cross_family_render import METHODS
+    from families import build_all
+
+    build_all(list(PEOPLE), len(SEEDS))
+    return [(p, v, s, m, SIZE) for p in PEOPLE for v in VARIANTS for s in SEEDS for m in METHODS]
+
+
+def report(rows: list[dict]) -> str:
+    from cross_family_render import report as view_report
+
+    return view_report(rows)
+
+
+if __name__ == "__main__":
+    study_main(__doc__, fit_case, runs, RESULTS, report,
+               key=lambda row: (row["people"], row["model"], row["seed"], row["method"], row["size"]))
