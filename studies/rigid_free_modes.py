@@ -34,23 +34,33 @@ METHODS = ("mean", "default", "statistical", "laplacian")
 SEEDS = (0, 1)
 
 
-def _use_variants() -> None:
-    """``families.landmarked_model`` answers the variant's name too (in this process)."""
+def use_variants() -> None:
+    """``families.family_model``, ``landmarked_model`` and ``METRES_PER_UNIT`` answer the names of
+    :data:`MODELS` with :data:`FREED` too (in this process): the model without rigid motion."""
     import families
     from statfit.model.cut import without_rigid_motion
 
     if getattr(families, "_variants_added", False):
         return
-    plain = families.landmarked_model
+    plain_model, plain_landmarked = families.family_model, families.landmarked_model
+
+    def family_model(name: str):
+        if name.endswith(FREED):
+            return without_rigid_motion(plain_model(name.removesuffix(FREED)))
+        return plain_model(name)
 
     def landmarked_model(name: str):
-        return without_rigid_motion(plain(name.removesuffix(FREED))) if name.endswith(FREED) else plain(name)
+        if name.endswith(FREED):
+            return without_rigid_motion(plain_landmarked(name.removesuffix(FREED)))
+        return plain_landmarked(name)
 
-    families.landmarked_model, families._variants_added = landmarked_model, True
+    families.family_model, families.landmarked_model, families._variants_added = family_model, landmarked_model, True
+    for name in MODELS:
+        families.METRES_PER_UNIT[name + FREED] = families.METRES_PER_UNIT[name]
 
 
 def fit_case(people: str, variant: str, seed: int, half: str, method: str) -> dict:
-    _use_variants()
+    use_variants()
     from cross_family_landmarks import fit_case as fit_half
 
     return fit_half(people, variant, seed, half, method)

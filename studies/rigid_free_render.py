@@ -17,36 +17,18 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from rigid_free_modes import FREED, MODELS, use_variants  # noqa: E402
 from study_runs import study_main  # noqa: E402
 
 RESULTS = ROOT / "studies" / "results" / "rigid_free_render.json"
 PEOPLE = ("ict", "ict-mask", "makehuman")
-FREED = " without rigid motion"
-MODELS = ("makehuman", "ict-mask")     # as in studies/rigid_free_modes.py
 VARIANTS = tuple(name + suffix for name in MODELS for suffix in ("", FREED))
 SEEDS = (0, 1)
 SIZE = 256
 
 
-def _use_variants() -> None:
-    """``families.family_model`` (and its units) answer the variant's name too (in this process)."""
-    import families
-    from statfit.model.cut import without_rigid_motion
-
-    if getattr(families, "_variants_added", False):
-        return
-    plain = families.family_model
-
-    def family_model(name: str):
-        return without_rigid_motion(plain(name.removesuffix(FREED))) if name.endswith(FREED) else plain(name)
-
-    families.family_model, families._variants_added = family_model, True
-    for name in MODELS:
-        families.METRES_PER_UNIT[name + FREED] = families.METRES_PER_UNIT[name]
-
-
 def fit_case(people: str, variant: str, seed: int, method: str, size: int) -> dict:
-    _use_variants()
+    use_variants()
     from cross_family_render import fit_case as fit_view
 
     return fit_view(people, variant, seed, method, size)
