@@ -17,12 +17,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from rigid_free_modes import FREED, MODELS, use_variants  # noqa: E402
+from rigid_free_modes import VARIANTS, use_variants  # noqa: E402
 from study_runs import study_main  # noqa: E402
 
 RESULTS = ROOT / "studies" / "results" / "rigid_free_render.json"
 PEOPLE = ("ict", "ict-mask", "makehuman")
-VARIANTS = tuple(name + suffix for name in MODELS for suffix in ("", FREED))
 SEEDS = (0, 1)
 SIZE = 256
 

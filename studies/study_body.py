@@ -206,7 +206,11 @@ def run_case(task: tuple[int, float, float, str, int], iterations: int | None = 
 
     model, gt, camera, normal_map = view(seed, yaw, pitch, size)
     snapshots: dict[int, np.ndarray] = {}
-    keep = lambda it, vertices: snapshots.update({it: vertices.copy()} if it in also_at else {})  # noqa: E731
+
+    def keep(iteration: int, vertices: np.ndarray) -> None:
+        if iteration in also_at:
+            snapshots[iteration] = vertices.copy()
+
     started = time.perf_counter()
     overrides = {} if iterations is None else {"iterations": iterations}
     fit = reconstruct(model, normal_map, camera, method, threads=1, on_snapshot=keep if also_at else None,
