@@ -78,3 +78,18 @@ def test_model_cut_takes_a_parts_rigid_motion_out_and_info_shows_the_share(tmp_p
     for path, share in ((tmp_path / "moving.npz", expected), (tmp_path / "face.npz", 0.0)):
         code, out, err = run(["model", "info", str(path), "--json"], capsys)
         assert code == 0 and json.loads(out)["rigid_motion_share"] == pytest.approx(share, abs=1e-9), out
+
+
+def test_a_model_whose_modes_only_move_it_is_refused_in_one_line(tmp_path, embedded_model, capsys):
+    """Nothing but rigid motion in its modes: no model is left, so `model cut --without-rigid-motion`
+    says so and writes nothing (not a model of rounding noise)."""
+    from statfit.model.statmodel import save_model
+
+    fields = rigid_fields(embedded_model.template)[:, [0, 4]]
+    save_model(model_from_arrays(embedded_model.template, embedded_model.faces, fields.reshape(-1, 3, 2)),
+               tmp_path / "rigid.npz")
+    code, out, err = run(["model", "cut", str(tmp_path / "rigid.npz"), "--without-rigid-motion", "-o",
+                          str(tmp_path / "out.npz")], capsys)
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and "only move it rigidly" in lines[0], err
+    assert not (tmp_path / "out.npz").exists()

@@ -98,6 +98,10 @@ def rescaled(model: StatModel, factor: float) -> StatModel:
                      model.regions, model.source)
 
 
+# Modes whose non-rigid part is below this share of their size are rigid motion and rounding alone.
+RIGID_ONLY = 1e-9
+
+
 def without_rigid_motion(model: StatModel) -> StatModel:
     """The model with its modes' rigid motion taken out: from each mode (its direction times its
     standard deviation) the least-squares small rigid motion of the template (a translation and a
@@ -107,10 +111,12 @@ def without_rigid_motion(model: StatModel) -> StatModel:
     falls with the body's height, so most of its modes' variance is where the head is, not its shape
     (MakeHuman's: 99.8%). A fit finds the pose itself; modes that move the part rigidly trade against
     it. To first order every shape of the model is a rigid motion of a shape of this one. Modes left
-    with (almost) nothing are dropped; landmarks and regions are kept. Not for every model: on a face
+    with (almost) nothing are dropped (StatfitError if every one is); landmarks and regions are kept. Not for every model: on a face
     mask (30% rigid) `register`'s default guessed the unseen half worse without it, though `render`
     fitted closer (docs/studies.md §43)."""
     shaped = _less_rigid_motion(model)
+    if np.linalg.norm(shaped) <= RIGID_ONLY * np.linalg.norm(model.std):
+        raise StatfitError("the model's modes only move it rigidly: without that motion no mode is left")
     return model_from_arrays(model.template, model.faces, shaped.reshape(model.num_vertices, 3, -1), model.landmarks,
                              model.regions, source=f"{model.source} (without rigid motion)")
 
