@@ -8,6 +8,10 @@
   head region cut out, its first 100 modes), 4,284 vertices, metres: another population, topology
   and resolution.
 - ``embedded``: statfit's embedded synthetic head (4,842 vertices, 50 modes).
+- ``makehuman-face`` (a check family, not in :data:`FAMILIES`): the front of MakeHuman's head model
+  (its vertices less than 1 cm behind or below its hindmost and lowest landmark: a face mask cut
+  from a body model, as one cut from SMPL-X would be), millimetres; its people are MakeHuman's, cut
+  the same way.
 
 People: ICT's are an identity sample plus an expression the identity model lacks (weight 0.5–1);
 ICT-mask people are the same, on the mask's vertices; MakeHuman's are held-out bodies (asymmetric,
@@ -37,7 +41,8 @@ from common import ICT_EXPRESSIONS, ICT_MODEL, ROOT
 
 FAMILIES = ("ict", "ict-mask", "makehuman", "embedded")
 LANDMARKED = ("ict", "ict-mask", "makehuman")
-METRES_PER_UNIT = {"ict": 0.01, "ict-mask": 0.001, "makehuman": 1.0, "embedded": 1.0}
+CHECK_FAMILIES = ("makehuman-face",)
+METRES_PER_UNIT = {"ict": 0.01, "ict-mask": 0.001, "makehuman": 1.0, "embedded": 1.0, "makehuman-face": 0.001}
 MAKEHUMAN = ROOT.parent / "shared" / "data" / "makehuman"
 MASK_VERTICES = 3000
 MAKEHUMAN_SAMPLES, MAKEHUMAN_BODY_MODES, MAKEHUMAN_HEAD_MODES = 3000, 200, 100
@@ -71,7 +76,7 @@ def _mask_vertices() -> np.ndarray:
 @lru_cache(maxsize=None)
 def family_model(name: str):
     """The family's model (a :class:`statfit.model.statmodel.StatModel`), built once and cached."""
-    from statfit.model.cut import decimated, region_part, rescaled
+    from statfit.model.cut import decimated, region_part, rescaled, vertex_subset
     from statfit.model.statmodel import default_model_path, load_model, save_model
 
     if name == "ict":
@@ -82,6 +87,9 @@ def family_model(name: str):
     if not cached.is_file():
         if name == "ict-mask":
             model = rescaled(decimated(region_part(_ict_full(), "face"), MASK_VERTICES), 10.0)
+        elif name == "makehuman-face":
+            model = rescaled(vertex_subset(landmarked_model("makehuman"), _makehuman_face_vertices(),
+                                           nearest_landmarks=True), 1000.0)
         elif name == "makehuman":
             space = _makehuman_space()
             from statfit.model.importers.makehuman_shapes import body_regions, build_body_model
@@ -100,6 +108,15 @@ def _makehuman_space():
     from statfit.model.importers.makehuman_shapes import BodySpace
 
     return BodySpace(read_makehuman(MAKEHUMAN))
+
+
+def _makehuman_face_vertices() -> np.ndarray:
+    """The MakeHuman head model's vertices the face check family keeps (module docstring)."""
+    model = landmarked_model("makehuman")
+    template, landmarks = model.template, model.template[model.landmarks]
+    ahead = template[:, 2] > landmarks[:, 2].min() - 0.01
+    above = template[:, 1] > landmarks[:, 1].min() - 0.01
+    return np.flatnonzero(ahead & above)
 
 
 def _makehuman_head_vertices() -> np.ndarray:
@@ -136,6 +153,8 @@ def person(family: str, seed: int) -> np.ndarray:
         return np.load(cached)
     if family == "embedded":
         return family_model("embedded").sample(rng)
+    if family == "makehuman-face":
+        return 1000.0 * person("makehuman", seed)[_makehuman_face_vertices()]
     raise ValueError(f"unknown family {family!r}; choose one of {', '.join(FAMILIES)}")
 
 
@@ -169,6 +188,8 @@ def landmarked_model(name: str):
     """The family's model with its 68 landmarks (a family of :data:`LANDMARKED`)."""
     from statfit.model.statmodel import with_landmarks
 
+    if name == "makehuman-face":
+        return family_model(name)
     if name not in LANDMARKED:
         raise ValueError(f"family {name!r} has no 68 landmarks; choose one of {', '.join(LANDMARKED)}")
     model = family_model(name)
@@ -179,4 +200,6 @@ def person_landmarks(family: str, seed: int) -> np.ndarray:
     """(68, 3) the true landmark positions of person ``seed`` of ``family``, in the family's units."""
     if family == "ict-mask":
         return 10.0 * person("ict", seed)[_ict_full().landmarks]
+    if family == "makehuman-face":
+        return 1000.0 * person_landmarks("makehuman", seed)
     return person(family, seed)[landmarked_model(family).landmarks]

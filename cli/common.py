@@ -112,6 +112,13 @@ SilhouetteOption = typer.Option("auto", help="The silhouette term: two-sided (th
                                 "photo by a skin mask, fitted with a head) or auto (one-sided for a model whose "
                                 "surface faces one way, as a face mask's does; else two-sided).")
 
+RigidModesOption = typer.Option("auto", "--rigid-modes", help="The model's modes as built (keep), or without the "
+                                 "rigid motion of the template in them (drop: each mode's least-squares translation "
+                                 "and rotation taken out, as `statfit model cut --without-rigid-motion` does; the "
+                                 "fit finds the pose itself), or auto: drop it where it is more than 90% of what "
+                                 "the modes do, as in a head cut from a body model (`statfit model info` prints the "
+                                 "share; docs/method.md). The mesh and --params are the given model's either way.")
+
 # Without a terminal, a progress line at most this often (seconds).
 PROGRESS_LINE_SECONDS = 5.0
 

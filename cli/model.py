@@ -281,7 +281,7 @@ def info(
     refuse_missing({}, model_path)
 
     # The library loads once the paths are known good: a mistyped name is refused at once.
-    from statfit.model.cut import rigid_motion_share
+    from statfit.model.cut import MOSTLY_RIGID, rigid_motion_share
     from statfit.model.importers import unread_npz_keys
     from statfit.model.importers.cache import open_model
     from statfit.model.statmodel import units_guess
@@ -314,7 +314,8 @@ def info(
         elif isinstance(value, list):
             value = " × ".join(f"{v:.4g}" for v in value)
         elif key == "rigid_motion_share":
-            value = f"{value:.1%} of the modes' variance"
+            fitted = "fits drop it" if value > MOSTLY_RIGID else "fits keep it"
+            value = f"{value:.1%} of the modes' variance ({fitted}: --rigid-modes auto)"
         elif isinstance(value, float):
             value = f"{value:.4g}"
         table.add_row(key.replace("_", " "), str(value))

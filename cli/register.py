@@ -7,11 +7,12 @@ import typer
 
 from statfit.errors import StatfitError
 from statfit.io.files import check_writable, mesh_format, params_suffix
-from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, FallbackOption, IterationsOption, JsonOption,
-                                KOption, LamOption, LandmarkWeightOption, LaplacianOption, LogOption, LrOption,
-                                MethodOption, ModeGainOption, ModelOption, ParamsOption, PowerOption, PresetOption,
-                                QuietOption, SeedOption, ThreadsOption, check_preview, clutter_choice, refuse_missing,
-                                refuse_overwrite, setting_overrides, within)
+from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, FallbackOption, IterationsOption,
+                                JsonOption, KOption, LamOption, LandmarkWeightOption, LaplacianOption, LogOption,
+                                LrOption, MethodOption, ModeGainOption, ModelOption, ParamsOption, PowerOption,
+                                PresetOption, QuietOption, RigidModesOption, SeedOption, ThreadsOption,
+                                check_preview, clutter_choice, refuse_missing, refuse_overwrite, setting_overrides,
+                                within)
 
 
 def register(
@@ -49,6 +50,7 @@ def register(
                                    show_default=False),
     landmark_weight: float = LandmarkWeightOption,
     clutter: str = ClutterOption,
+    rigid_modes: str = RigidModesOption,
     device: str = DeviceOption,
     threads: int = ThreadsOption,
     seed: int = SeedOption,
@@ -105,6 +107,7 @@ def register(
     from statfit.geometry.support import scan_support
     from statfit.io.landmarks import read_landmarks
     from statfit.io.mesh import load_scan, mesh_bytes
+    from statfit.model.cut import check_rigid_modes
     from statfit.model.importers.cache import open_model
     from statfit.model.params import project, vertex_fields
     from statfit.model.params_file import params_bytes
@@ -113,6 +116,7 @@ def register(
 
     overrides = setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain)
     clutter_rules = clutter_choice(clutter)
+    check_rigid_modes(rigid_modes)
     stages = resolve(method, preset, **overrides)
     refit = method_fallback(method, preset, **overrides) if fallback else None
     weight = method_landmark_weight(method) if landmark_weight is None else landmark_weight
@@ -124,13 +128,13 @@ def register(
                   modes=model.num_modes, input=scan, points=len(points.points), align=align, device=str(torch_device),
                   threads=threads, seed=seed, refresh=refresh, trim=trim, region=region,
                   landmarks=str(landmarks) if landmarks else None, landmark_weight=weight,
-                  clutter=clutter)
+                  clutter=clutter, rigid_modes=rigid_modes)
     label = Path(scan).name if scan != "-" else "stdin"
     with fit_run("register", log, label, sum(s.iterations for s in stages), quiet, **header) as run:
         result = fit_scan(model, points, stages=stages, align=align, device=str(torch_device),
                           refresh_every=refresh, trim=trim, seed=seed, on_record=run.on_record,
                           region=region, landmarks=scan_landmarks, landmark_weight=landmark_weight, threads=threads,
-                          clutter=clutter_rules, fallback=refit)
+                          clutter=clutter_rules, fallback=refit, rigid_modes=rigid_modes)
     summary = {"input": scan, "output": target, "method": method, "iterations": result.iterations,
                "final_loss": result.loss, "seconds": result.seconds, "threads": result.threads,
                "stage_seconds": result.stage_seconds, "model_to_scan": result.transform.as_matrix().tolist(),

@@ -10,9 +10,9 @@ from statfit.io.files import check_writable, mesh_format, params_suffix
 from statfit.objectives.weights import SILHOUETTE_WEIGHT
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, JsonOption, KOption, LamOption,
                                 LaplacianOption, LogOption, LrOption, MethodOption, ModeGainOption, ModelOption,
-                                ParamsOption, PowerOption, PresetOption, QuietOption, SeedOption, SilhouetteOption,
-                                ThreadsOption, check_preview, printed_warnings, refuse_missing, refuse_overwrite,
-                                setting_overrides, within)
+                                ParamsOption, PowerOption, PresetOption, QuietOption, RigidModesOption, SeedOption,
+                                SilhouetteOption, ThreadsOption, check_preview, printed_warnings, refuse_missing,
+                                refuse_overwrite, setting_overrides, within)
 
 
 def render(
@@ -51,6 +51,7 @@ def render(
     silhouette_weight: float = typer.Option(SILHOUETTE_WEIGHT, help="Weight of the silhouette term (0: off).",
                                             callback=within(0, 1e6)),
     silhouette: str = SilhouetteOption,
+    rigid_modes: str = RigidModesOption,
     region: str = typer.Option(None, "--region", metavar="<name>",
                                help="Fit only the model's region NAME (e.g. face): after the "
                                "alignment, only pixels showing the region's triangles count and the silhouette is "
@@ -103,6 +104,7 @@ def render(
     from statfit.io.image import read_mask
     from statfit.io.mesh import mesh_bytes, read_mesh
     from statfit.io.normalmap import apply_mask, camera_for_map, read_normal_map
+    from statfit.model.cut import check_rigid_modes
     from statfit.model.importers.cache import open_model
     from statfit.model.params import project, vertex_fields
     from statfit.model.params_file import params_bytes
@@ -110,6 +112,7 @@ def render(
     from statfit_cli.runner import finish, fit_run
 
     overrides = setting_overrides(iterations, lr, beta, power, lam, laplacian, mode_gain)
+    check_rigid_modes(rigid_modes)
     stages = render_stages(method, preset, region, **overrides)
     torch_device = resolve_device(device, "render")
     with printed_warnings():
@@ -128,12 +131,13 @@ def render(
                   pixels=int(normal_map.mask.sum()), align=align, init=str(init) if init else None,
                   normal_space=normal_space, normal_convention=normal_convention,
                   silhouette_weight=silhouette_weight, silhouette=silhouette_sides(silhouette, model), region=region,
-                  device=str(torch_device), threads=threads, seed=seed)
+                  rigid_modes=rigid_modes, device=str(torch_device), threads=threads, seed=seed)
     with fit_run("render", log, normal_map_path.name, sum(s.iterations for s in stages), quiet, **header) as run:
         result = reconstruct(model, normal_map, camera, stages=stages, normal_space=normal_space,
                              normal_convention=normal_convention, align=align, init=start,
                              device=str(torch_device), silhouette_weight=silhouette_weight, seed=seed,
-                             on_record=run.on_record, region=region, threads=threads, silhouette=silhouette)
+                             on_record=run.on_record, region=region, threads=threads, silhouette=silhouette,
+                             rigid_modes=rigid_modes)
     summary = {"input": str(normal_map_path), "output": str(out), "method": method, "iterations": result.iterations,
                "final_loss": result.loss, "seconds": result.seconds, "threads": result.threads,
                "stage_seconds": result.stage_seconds, "model_to_world": result.transform.as_matrix().tolist()}

@@ -4,6 +4,7 @@ SVD."""
 from __future__ import annotations
 
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -93,3 +94,86 @@ def test_a_model_whose_modes_only_move_it_is_refused_in_one_line(tmp_path, embed
     lines = err.strip().splitlines()
     assert code == 2 and len(lines) == 1 and "only move it rigidly" in lines[0], err
     assert not (tmp_path / "out.npz").exists()
+
+
+def moving_head(model, size: float = 4.0):
+    """The embedded head with a mode that shifts it and one that turns it added (rigid share 0.98;
+    ``size`` 1: 0.74): a part cut from a larger model, as MakeHuman's head is."""
+    fields = rigid_fields(model.template)
+    moves = fields[:, [1, 3]] / np.linalg.norm(fields[:, [1, 3]], axis=0) * [0.5 * size, 0.4 * size]
+    modes = np.concatenate([moves, model.basis * model.std], axis=1).reshape(-1, 3, model.num_modes + 2)
+    return model_from_arrays(model.template, model.faces, modes, model.landmarks, model.regions)
+
+
+def test_auto_fits_a_mostly_rigid_model_without_its_rigid_motion_and_any_other_as_given(embedded_model):
+    from statfit.errors import StatfitError, StatfitWarning
+    from statfit.model.cut import fitting_model, rigid_motion_share
+
+    moving = moving_head(embedded_model)
+    share = rigid_motion_share(moving)
+    assert share > 0.9 > rigid_motion_share(moving_head(embedded_model, 1.0)) > 0.7
+    with pytest.warns(StatfitWarning, match=f"{100 * share:.1f}% of the model's modes' variance is rigid motion"):
+        chosen = fitting_model(moving)
+    freed = without_rigid_motion(moving)
+    np.testing.assert_array_equal(chosen.basis, freed.basis)
+    np.testing.assert_array_equal(chosen.std, freed.std)
+    assert fitting_model(moving, "keep") is moving
+    np.testing.assert_array_equal(fitting_model(embedded_model, "drop").std, without_rigid_motion(embedded_model).std)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert fitting_model(embedded_model) is embedded_model     # 12% rigid: as given, silently
+        mostly = moving_head(embedded_model, 1.0)
+        assert fitting_model(mostly) is mostly                     # 74%, as MakeHuman's whole body: as given
+        rigid_only = model_from_arrays(embedded_model.template, embedded_model.faces,
+                                       rigid_fields(embedded_model.template)[:, [0, 4]].reshape(-1, 3, 2))
+        assert fitting_model(rigid_only) is rigid_only             # nothing would be left: as given
+    with pytest.raises(StatfitError, match="unknown --rigid-modes 'none'; choose one of auto, keep, drop"):
+        fitting_model(moving, "none")
+
+
+def test_register_and_render_fit_the_model_the_rule_chooses(embedded_model):
+    """A mostly rigid model fitted with the default is, to the bit, its rigid-free model fitted as
+    given; kept as built it ends elsewhere."""
+    from conftest import normal_map_scene
+    from statfit.errors import StatfitWarning
+    from statfit.registration.job import register
+    from statfit.render.job import reconstruct
+    from statfit.synth.sample import sample_target, scan_from_view
+
+    moving = moving_head(embedded_model)
+    freed = without_rigid_motion(moving)
+    rng = np.random.default_rng(3)
+    points = scan_from_view(sample_target(embedded_model, rng), embedded_model.faces, rng, 1500, 20.0)
+    with pytest.warns(StatfitWarning, match="rigid motion"):
+        fits = {name: register(model, points, "pca", align="none", iterations=20, rigid_modes=rule).vertices
+                for name, model, rule in (("auto", moving, "auto"), ("freed", freed, "keep"), ("kept", moving, "keep"))}
+    np.testing.assert_array_equal(fits["auto"], fits["freed"])
+    assert np.abs(fits["kept"] - fits["auto"]).max() > 1e-4
+    normal_map, camera = normal_map_scene(embedded_model, 48)[:2]
+    with pytest.warns(StatfitWarning, match="rigid motion"):
+        renders = {name: reconstruct(model, normal_map, camera, "pca", iterations=10, rigid_modes=rule).vertices
+                   for name, model, rule in (("auto", moving, "auto"), ("freed", freed, "keep"))}
+    np.testing.assert_array_equal(renders["auto"], renders["freed"])
+
+
+def test_the_cli_says_which_modes_it_fits_and_refuses_an_unknown_rule(tmp_path, embedded_model, capsys):
+    from statfit.io.mesh import points_bytes
+    from statfit.model.statmodel import save_model
+    from statfit.synth.sample import sample_target, scan_from_view
+
+    save_model(moving_head(embedded_model), tmp_path / "moving.npz")
+    rng = np.random.default_rng(4)
+    (tmp_path / "scan.ply").write_bytes(points_bytes(scan_from_view(sample_target(embedded_model, rng),
+                                                                    embedded_model.faces, rng, 1500, 20.0)))
+    fit = ["register", str(tmp_path / "scan.ply"), "--model", str(tmp_path / "moving.npz"), "--method", "pca",
+           "--align", "none", "--iterations", "5", "-q"]
+    code, _, err = run([*fit, "-o", str(tmp_path / "a.ply")], capsys)
+    assert code == 0 and "of the model's modes' variance is rigid motion" in err, err
+    code, _, err = run([*fit, "-o", str(tmp_path / "b.ply"), "--rigid-modes", "keep"], capsys)
+    assert code == 0 and "rigid motion" not in err, err
+    for command in (fit + ["-o", str(tmp_path / "c.ply")],
+                    ["batch", "register", str(tmp_path / "scan.ply"), "--out-dir", str(tmp_path / "out"),
+                     "--model", str(tmp_path / "moving.npz")]):
+        code, _, err = run([*command, "--rigid-modes", "off"], capsys)
+        assert code == 2 and err.strip() == "statfit: error: unknown --rigid-modes 'off'; choose one of auto, keep, drop"
+    assert not (tmp_path / "c.ply").exists() and not (tmp_path / "out").exists()

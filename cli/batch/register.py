@@ -10,8 +10,9 @@ from statfit_cli.batch.options import (BatchThreadsOption, ClusterOption, ForceO
                                        OutDirOption, SchedulerOption, TimeoutOption, WorkersOption, planned_inputs)
 from statfit_cli.common import (BetaOption, ClutterOption, DeviceOption, FallbackOption, IterationsOption, KOption,
                                 LamOption, LandmarkWeightOption, LaplacianOption, LrOption, MethodOption,
-                                ModeGainOption, ModelOption, PowerOption, PresetOption, QuietOption, SeedOption,
-                                clutter_choice, refuse_missing, setting_overrides, within)
+                                ModeGainOption, ModelOption, PowerOption, PresetOption, QuietOption,
+                                RigidModesOption, SeedOption, clutter_choice, refuse_missing, setting_overrides,
+                                within)
 
 
 def batch_register(
@@ -46,6 +47,7 @@ def batch_register(
                                   show_default=False),
     landmark_weight: float = LandmarkWeightOption,
     clutter: str = ClutterOption,
+    rigid_modes: str = RigidModesOption,
     device: str = DeviceOption,
     threads: int = BatchThreadsOption,
     together: int = typer.Option(None, "--together", help="Scans each worker registers in one program: each "
@@ -86,6 +88,7 @@ def batch_register(
     from statfit.batch.plan import check_companion_template
     from statfit.core.device import resolve_device
     from statfit.core.methods import fallback as method_fallback, resolve
+    from statfit.model.cut import check_rigid_modes
     from statfit.model.statmodel import region_vertices
     from statfit.registration.many import together_for
     from statfit.registration.prealign import ALIGNMENTS
@@ -97,6 +100,7 @@ def batch_register(
     refit = method_fallback(method, preset, **overrides) if fallback else None
     if align not in ALIGNMENTS:
         raise StatfitError(f"unknown alignment {align!r}; choose one of {', '.join(ALIGNMENTS)}")
+    check_rigid_modes(rigid_modes)
     model_file, digest, model = model_identity(model_path, k)
     if region is not None:
         region_vertices(model, region)
@@ -113,6 +117,8 @@ def batch_register(
                    clutter=clutter_choice(clutter))
     if landmark_weight is not None:
         options["landmark_weight"] = landmark_weight   # only then: the settings key of batches without it stays
+    if rigid_modes != "auto":
+        options["rigid_modes"] = rigid_modes          # the same
     job = FitJob("register", model_file, k, stages, options, fallback=refit, threads=threads, device=str(fit_device),
                  model_digest=digest, params=params, together=together or together_for(model, fit_device),
                  landmarks=landmarks)

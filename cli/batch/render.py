@@ -14,8 +14,8 @@ from statfit_cli.batch.options import (BatchThreadsOption, ClusterOption, ForceO
                                        OutDirOption, SchedulerOption, TimeoutOption, WorkersOption, planned_inputs)
 from statfit_cli.common import (BetaOption, DeviceOption, IterationsOption, KOption, LamOption, LaplacianOption,
                                 LrOption, MethodOption, ModeGainOption, ModelOption, PowerOption, PresetOption,
-                                QuietOption, SeedOption, SilhouetteOption, refuse_missing, setting_overrides,
-                                within)
+                                QuietOption, RigidModesOption, SeedOption, SilhouetteOption, refuse_missing,
+                                setting_overrides, within)
 
 
 def batch_render(
@@ -47,6 +47,7 @@ def batch_render(
     silhouette_weight: float = typer.Option(SILHOUETTE_WEIGHT, help="Weight of the silhouette term (0: off).",
                                             callback=within(0, 1e6)),
     silhouette: str = SilhouetteOption,
+    rigid_modes: str = RigidModesOption,
     region: str = typer.Option(None, "--region", metavar="<name>",
                                help="Fit only the model's region NAME.", show_default=False),
     device: str = DeviceOption,
@@ -87,6 +88,7 @@ def batch_render(
     from statfit.batch.fits import FitJob
     from statfit.core.device import resolve_device
     from statfit.io.normalmap import read_camera
+    from statfit.model.cut import check_rigid_modes
     from statfit.model.statmodel import region_vertices
     from statfit.render.framing import NORMAL_CONVENTIONS, NORMAL_SPACES
     from statfit.render.job import ALIGNMENTS, render_stages, silhouette_sides
@@ -102,6 +104,7 @@ def batch_render(
                                  (normal_convention, NORMAL_CONVENTIONS, "normal convention")):
         if value not in allowed:
             raise StatfitError(f"unknown {name} {value!r}; choose one of {', '.join(allowed)}")
+    check_rigid_modes(rigid_modes)
     camera = None
     if per_map:
         camera = camera_path                # each map's own, read with the map; its bytes in the map's digest
@@ -118,7 +121,8 @@ def batch_render(
         together = together_for(model, _map_pixels(items), fit_device) if fit_device.type == "cuda" else 1
     job = FitJob("render", model_file, k, stages,
                  dict(camera=camera, align=align, normal_space=normal_space, normal_convention=normal_convention,
-                      silhouette_weight=silhouette_weight, silhouette=sides, region=region, seed=seed),
+                      silhouette_weight=silhouette_weight, silhouette=sides, region=region, seed=seed)
+                 | ({} if rigid_modes == "auto" else {"rigid_modes": rigid_modes}),
                  threads=threads, device=str(fit_device), model_digest=digest, params=params, together=together)
     run_fits(items, job, out_dir, workers, scheduler, cluster, timeout, force, quiet, json_out)
 

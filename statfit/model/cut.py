@@ -121,10 +121,48 @@ def without_rigid_motion(model: StatModel) -> StatModel:
                              model.regions, source=f"{model.source} (without rigid motion)")
 
 
+RIGID_MODES = ("auto", "keep", "drop")
+# ``auto`` drops the modes' rigid motion above this share of their variance. Measured: the families
+# at 12–30% (where dropping it made `register` worse on a face mask) and at 99.8–99.9% (parts cut
+# from a body model, which fit far closer without it; docs/studies.md §43–§44). MakeHuman's whole
+# body model lies at 73% (a taller body's centroid is higher): its studies were made as built and it
+# was not measured without, so it keeps them.
+MOSTLY_RIGID = 0.9
+
+
+def check_rigid_modes(rigid_modes: str) -> str:
+    """``rigid_modes`` if it is one of :data:`RIGID_MODES`, else StatfitError."""
+    if rigid_modes not in RIGID_MODES:
+        raise StatfitError(f"unknown --rigid-modes {rigid_modes!r}; choose one of {', '.join(RIGID_MODES)}")
+    return rigid_modes
+
+
+def fitting_model(model: StatModel, rigid_modes: str = "auto") -> StatModel:
+    """The model a fit uses: ``keep``, the model as given; ``drop``, :func:`without_rigid_motion`;
+    ``auto``, without its modes' rigid motion where that is more than :data:`MOSTLY_RIGID` of
+    their variance (a StatfitWarning says so) and some shape is left, else as given. A fit's result is in the model's
+    topology either way, and its params are the given model's code for it."""
+    if check_rigid_modes(rigid_modes) == "keep":
+        return model
+    if rigid_modes == "drop":
+        return without_rigid_motion(model)
+    share = rigid_motion_share(model)
+    if share <= MOSTLY_RIGID:
+        return model
+    try:
+        freed = without_rigid_motion(model)
+    except StatfitError:        # modes that only move it: nothing would be left, so the fit has them as given
+        return model
+    warnings.warn(f"{share:.1%} of the model's modes' variance is rigid motion (a part cut from a larger model?): "
+                  "the fit uses its modes without it (--rigid-modes keep: as built)", StatfitWarning, stacklevel=2)
+    return freed
+
+
 def rigid_motion_share(model: StatModel) -> float:
     """The share of the modes' variance that is small rigid motion of the template (0–1;
     :func:`without_rigid_motion`)."""
-    return 1.0 - float((_less_rigid_motion(model) ** 2).sum() / (model.std**2).sum())
+    total = float((model.std**2).sum())
+    return 1.0 - float((_less_rigid_motion(model) ** 2).sum()) / total if total > 0 else 0.0
 
 
 def _less_rigid_motion(model: StatModel) -> np.ndarray:

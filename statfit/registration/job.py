@@ -12,6 +12,7 @@ from statfit.core.methods import Fallback, resolve
 from statfit.core.settings import Settings
 from statfit.core.stages import Fit
 from statfit.core.threads import intra_op_threads
+from statfit.model.cut import fitting_model
 from statfit.model.statmodel import StatModel
 from statfit.registration.posed import PosedScan, plan_fits
 from statfit.structures.scan import Scan
@@ -25,7 +26,7 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
              region: str | None = None, landmarks: np.ndarray | None = None,
              on_snapshot: Callable[[int, np.ndarray], None] | None = None, threads: int | None = None,
              landmark_weight: float | None = None, clutter: bool | None = None,
-             fallback: Fallback | bool | None = True, **overrides: Any) -> Fit:
+             fallback: Fallback | bool | None = True, rigid_modes: str = "auto", **overrides: Any) -> Fit:
     """Fit ``model`` to the scan ``points`` (M, 3), or a :class:`statfit.structures.scan.Scan` (e.g. drawn
     from a mesh scan by area), with ``method``.
 
@@ -62,7 +63,10 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
     are those the data term was given (the hair left out); it does not apply where the data term
     keeps to a region (``region``, or the face alone under hair): there the residual measures what
     the fit leaves out by design. Warns (StatfitWarning) when the scan is far from the model with align='none'.
+    ``rigid_modes``: fit the model's modes as given or without their rigid motion
+    (:func:`statfit.model.cut.fitting_model`; ``auto``: without it where it is most of what they do).
     """
+    model = fitting_model(model, rigid_modes)
     plan = plan_fits(model, method, preset, stages, overrides, trim, refresh_every, landmark_weight, fallback,
                      device, threads)
     with intra_op_threads(plan.threads):

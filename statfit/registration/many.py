@@ -29,6 +29,7 @@ from statfit.core.stages import Fit, PipelineResult
 from statfit.core.threads import intra_op_threads, task_threads
 from statfit.core.together import FitOutcome, Member, each_alone, fits_in_memory, run_stages_together
 from statfit.errors import StatfitError
+from statfit.model.cut import fitting_model
 from statfit.model.statmodel import StatModel
 from statfit.objectives.scans import ScanBatch
 from statfit.registration.posed import FitSetup, PosedScan, model_tensors, plan_fits
@@ -69,14 +70,15 @@ def register_many(model: StatModel, scans: Sequence[np.ndarray | Scan], method: 
                   device: str | None = None, dtype: torch.dtype = torch.float32, refresh_every: int = 10,
                   trim: float = 0.05, seed: int = 0, stages: tuple[Settings, ...] | None = None,
                   region: str | None = None, threads: int | None = None, landmark_weight: float | None = None,
-                  clutter: bool | None = None, fallback: Fallback | bool | None = True, **overrides: Any
-                  ) -> list[FitOutcome]:
+                  clutter: bool | None = None, fallback: Fallback | bool | None = True, rigid_modes: str = "auto",
+                  **overrides: Any) -> list[FitOutcome]:
     """Fit ``model`` to each of ``scans`` ((M_b, 3) points or :class:`Scan`), with ``landmarks`` (one
     (L, 3) array or None per scan) and the options of :func:`statfit.registration.job.register`, the
     gradient stages of all the fits stepped together. One :class:`statfit.core.together.FitOutcome` per scan, in order; a bad
     option raises StatfitError (it would fail every fit)."""
     if landmarks is not None and len(landmarks) != len(scans):
         raise StatfitError(f"{len(scans)} scans but {len(landmarks)} landmark sets")
+    model = fitting_model(model, rigid_modes)
     plan = plan_fits(model, method, preset, stages, overrides, trim, refresh_every, landmark_weight, fallback, device,
                      threads)
     members = [_Scan(i) for i in range(len(scans))]

@@ -29,6 +29,7 @@ from statfit.structures.frame import Frame, surface_vertices
 from statfit.structures.normal_map import NormalMap
 from statfit.core.methods import resolve
 from statfit.core.settings import FitSpace, Settings
+from statfit.model.cut import fitting_model
 from statfit.model.statmodel import StatModel, region_triangles
 from statfit.objectives.normals import NormalMapObjective
 from statfit.objectives.weights import SILHOUETTE_WEIGHT
@@ -132,7 +133,8 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
                 on_record: Callable[[int, dict[str, float]], None] | None = None,
                 timer: StageTimer | None = None, stages: tuple[Settings, ...] | None = None,
                 region: str | None = None, on_snapshot: Callable[[int, np.ndarray], None] | None = None,
-                threads: int | None = None, silhouette: str = "auto", **overrides: Any) -> Fit:
+                threads: int | None = None, silhouette: str = "auto", rigid_modes: str = "auto",
+                **overrides: Any) -> Fit:
     """Fit ``model`` to ``normal_map`` seen by ``camera`` with ``method``.
 
     ``init`` (N, 3): start from these vertices (world frame) instead of the template.
@@ -148,8 +150,11 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
     subject), ``covering`` (only mask left uncovered counts: for a map of part of the subject, a face
     cut out by a skin mask fitted with a head) or ``auto``: one-sided for a model whose surface faces
     one way (:func:`one_sided_silhouette`), else two-sided (a map cannot tell a cut outline from the
-    subject's: docs/studies.md §24).
+    subject's: docs/studies.md §24). ``rigid_modes``: fit the model's modes as given or without their
+    rigid motion (:func:`statfit.model.cut.fitting_model`; ``auto``: without it where it is most of
+    what they do).
     """
+    model = fitting_model(model, rigid_modes)
     stages = checked_stages(model, align, silhouette, silhouette_weight, stages, method, preset, region, overrides)
     torch_device = resolve_device(device, "render")
     threads = choose_threads(model.basis.size + RENDER_FLOATS_PER_PIXEL * normal_map.mask.size, threads)

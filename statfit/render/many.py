@@ -25,6 +25,7 @@ from statfit.core.stages import PipelineResult
 from statfit.core.threads import choose_threads, intra_op_threads
 from statfit.core.together import FitOutcome, Member, fits_in_memory, run_stages_together
 from statfit.errors import StatfitError
+from statfit.model.cut import fitting_model
 from statfit.model.statmodel import StatModel
 from statfit.objectives.normals import NormalMapObjective
 from statfit.objectives.weights import SILHOUETTE_WEIGHT
@@ -64,13 +65,15 @@ def reconstruct_many(model: StatModel, normal_maps: Sequence[NormalMap], cameras
                      normal_convention: str = "opencv", align: str = "rigid", device: str | None = None,
                      dtype: torch.dtype = torch.float32, silhouette_weight: float = SILHOUETTE_WEIGHT, seed: int = 0,
                      stages: tuple[Settings, ...] | None = None, region: str | None = None,
-                     threads: int | None = None, silhouette: str = "auto", **overrides: Any) -> list[FitOutcome]:
+                     threads: int | None = None, silhouette: str = "auto", rigid_modes: str = "auto",
+                     **overrides: Any) -> list[FitOutcome]:
     """Fit ``model`` to each of ``normal_maps`` seen by its camera (``cameras``, one per map), with the
     options of :func:`statfit.render.job.reconstruct`; the stages of the fits of one image size
     stepped together. One :class:`statfit.core.together.FitOutcome` per map, in order; a bad option
     raises StatfitError (it would fail every fit)."""
     if len(cameras) != len(normal_maps):
         raise StatfitError(f"{len(normal_maps)} normal maps but {len(cameras)} cameras")
+    model = fitting_model(model, rigid_modes)
     stages = checked_stages(model, align, silhouette, silhouette_weight, stages, method, preset, region, overrides)
     torch_device = resolve_device(device, "render")
     largest = max((each.mask.size for each in normal_maps), default=0)
