@@ -12,6 +12,9 @@ engine's overhead per fit, and the manifest's bookkeeping at 10,000 inputs with 
    workers: seconds for the whole batch, and for a rerun that skips everything; then 20 fresh
    batches, each killed (SIGKILL) at a random moment of its run, the manifest checked, resumed to
    the end and checked again: every input done once, each recorded output present with its size.
+4. A pool's start: seconds until each of its workers has answered a call, in a fresh process, with
+   the workers forked from the fork server the local pool uses (imports paid once, in the server)
+   against fresh interpreters (spawned, as before session 40), 1, 2 and 4 workers.
 """
 from __future__ import annotations
 
@@ -60,6 +63,35 @@ def bookkeeping_run(inputs: str, out_dir: str, workers: int) -> None:
     finally:
         engine.close()
     print(json.dumps({"done": report.done, "skipped": report.skipped, "failed": len(report.failed)}))
+
+
+def pool_start(workers: int, how: str) -> None:
+    """Print the seconds two new local pools of ``workers`` each take until all their workers have
+    answered, one after the other (as when a hung fit's pool is replaced), in a fresh child:
+    ``how`` "fork server" (the pool's own way) or "spawn" (a fresh interpreter each)."""
+    import multiprocessing
+
+    from statfit.batch import engines
+
+    if how == "spawn":
+        engines._worker_context = lambda: multiprocessing.get_context("spawn")
+    for _ in range(2):
+        started = time.perf_counter()
+        engine = engines.LocalPool(workers)
+        engine.submit(engines._pid_after, 0.0).result()
+        print(time.perf_counter() - started)
+        engine.close()
+
+
+def _pool_starts() -> dict:
+    seconds = {}
+    for workers in (1, 2, 8):
+        for how in ("fork server", "spawn"):   # side by side, each in a fresh process
+            code = f"import batch; batch.pool_start({workers}, {how!r})"
+            out = subprocess.run(_child(code), check=True, capture_output=True, text=True).stdout
+            first, second = map(float, out.split()[-2:])
+            seconds[f"{how}, {workers} worker{'s' * (workers > 1)}"] = {"first": first, "replaced": second}
+    return seconds
 
 
 def _timed(command: list[str]) -> float:
@@ -202,6 +234,7 @@ def measure(quick: bool) -> dict:
             data["ict"] = _throughput(ict, str(ICT_MODEL), ["--iterations", "200"] if quick else [], shell_loop=False)
     data["bookkeeping"] = _bookkeeping(QUICK_BOOKKEEPING_INPUTS if quick else BOOKKEEPING_INPUTS,
                                        QUICK_KILLS if quick else KILLS)
+    data["pool_start"] = _pool_starts()
     return data
 
 
@@ -240,4 +273,10 @@ def section(data: dict, quick: bool) -> Section:
         f"resume: {sum(r['resumed']['redone'] for r in rounds)} (only an output written but not yet recorded when "
         f"the kill came is redone); resumed batches that finished all {book['inputs']:,}: {complete} of "
         f"{len(rounds)}.")
+    if "pool_start" in data:
+        parts.append("**A pool's start** (seconds until every worker has answered, in a fresh process; then a "
+                     "second pool's, as when a hung fit's pool is replaced; the fork server's start included "
+                     "in the first):\n\n" + markdown_table(
+                         ["workers started", "first pool s", "replaced pool s"],
+                         [[how, s["first"], s["replaced"]] for how, s in data["pool_start"].items()]))
     return Section("batch", "Batches: throughput, engine overhead, bookkeeping", "\n\n".join(parts), data=data)
