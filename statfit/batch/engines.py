@@ -13,6 +13,7 @@ import multiprocessing
 import multiprocessing.connection
 import os
 import signal
+import sys
 import threading
 import time
 from typing import Any, Callable, Iterable, Protocol
@@ -63,8 +64,10 @@ def _worker_context() -> multiprocessing.context.BaseContext:
     no threads, started once per batch process, that has imported the fitting code), where the
     platform has one: a worker then starts in milliseconds, not the ~4 s of CPU a fresh interpreter
     takes to import torch and statfit, and a pool replaced after a hang starts as fast. Elsewhere
-    (Windows) each worker is a fresh interpreter. Either way no worker inherits a thread."""
-    if "forkserver" not in multiprocessing.get_all_start_methods():
+    (macOS, where a fork of a process that loaded system frameworks is unsafe, as Python's own
+    default says; Windows) each worker is a fresh interpreter. Either way no worker inherits a
+    thread."""
+    if not sys.platform.startswith("linux"):
         return multiprocessing.get_context("spawn")
     context = multiprocessing.get_context("forkserver")
     context.set_forkserver_preload([prepare_worker.__module__])
