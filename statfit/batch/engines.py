@@ -60,13 +60,13 @@ WORKER_START_SECONDS = 300   # the longest a new pool waits for all its workers 
 
 
 def _worker_context() -> multiprocessing.context.BaseContext:
-    """How the local pool starts its workers: forked from a fork server (a fresh interpreter with
-    no threads, started once per batch process, that has imported the fitting code), where the
-    platform has one: a worker then starts in milliseconds, not the ~4 s of CPU a fresh interpreter
-    takes to import torch and statfit, and a pool replaced after a hang starts as fast. Elsewhere
-    (macOS, where a fork of a process that loaded system frameworks is unsafe, as Python's own
-    default says; Windows) each worker is a fresh interpreter. Either way no worker inherits a
-    thread."""
+    """How the local pool starts its workers: on Linux, forked from a fork server (a fresh
+    interpreter with no threads, started once per batch process, that has imported the fitting
+    code): a worker then starts in milliseconds, not the ~3 s of CPU a fresh interpreter takes to
+    import torch and statfit, and a pool replaced after a hang starts as fast (docs/benchmarks.md
+    §7). Elsewhere (macOS, where a fork after system frameworks have loaded is unsafe and Python's
+    own default is spawn; Windows) each worker is a fresh interpreter. Either way no worker
+    inherits a thread."""
     if not sys.platform.startswith("linux"):
         return multiprocessing.get_context("spawn")
     context = multiprocessing.get_context("forkserver")

@@ -140,8 +140,8 @@ def check_rigid_modes(rigid_modes: str) -> str:
 def fitting_model(model: StatModel, rigid_modes: str = "auto") -> StatModel:
     """The model a fit uses: ``keep``, the model as given; ``drop``, :func:`without_rigid_motion`;
     ``auto``, without its modes' rigid motion where that is more than :data:`MOSTLY_RIGID` of
-    their variance (a StatfitWarning says so) and some shape is left, else as given. A fit's result is in the model's
-    topology either way, and its params are the given model's code for it."""
+    their variance (a StatfitWarning says so) and some shape is left, else as given. The fit's
+    mesh is in the model's topology either way; the CLI's params project it onto the given model."""
     if check_rigid_modes(rigid_modes) == "keep":
         return model
     if rigid_modes == "drop":
