@@ -133,7 +133,8 @@ def test_auto_fits_a_mostly_rigid_model_without_its_rigid_motion_and_any_other_a
 
 def test_register_and_render_fit_the_model_the_rule_chooses(embedded_model):
     """A mostly rigid model fitted with the default is, to the bit, its rigid-free model fitted as
-    given; kept as built it ends elsewhere."""
+    given; kept as built it ends elsewhere; and so does the default where the scan is taken to lie
+    in the model's frame."""
     from conftest import normal_map_scene
     from statfit.errors import StatfitWarning
     from statfit.registration.job import register
@@ -145,10 +146,17 @@ def test_register_and_render_fit_the_model_the_rule_chooses(embedded_model):
     rng = np.random.default_rng(3)
     points = scan_from_view(sample_target(embedded_model, rng), embedded_model.faces, rng, 1500, 20.0)
     with pytest.warns(StatfitWarning, match="rigid motion"):
-        fits = {name: register(model, points, "pca", align="none", iterations=20, rigid_modes=rule).vertices
+        fits = {name: register(model, points, "pca", align="rigid", iterations=20, rigid_modes=rule).vertices
                 for name, model, rule in (("auto", moving, "auto"), ("freed", freed, "keep"), ("kept", moving, "keep"))}
     np.testing.assert_array_equal(fits["auto"], fits["freed"])
     assert np.abs(fits["kept"] - fits["auto"]).max() > 1e-4
+    # a scan taken to lie in the model's frame (no alignment, no landmarks): nothing else finds the
+    # pose, so the modes keep their rigid motion
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        in_frame = {rule: register(moving, points, "pca", align="none", iterations=20, rigid_modes=rule).vertices
+                    for rule in ("auto", "keep")}
+    np.testing.assert_array_equal(in_frame["auto"], in_frame["keep"])
     normal_map, camera = normal_map_scene(embedded_model, 48)[:2]
     with pytest.warns(StatfitWarning, match="rigid motion"):
         renders = {name: reconstruct(model, normal_map, camera, "pca", iterations=10, rigid_modes=rule).vertices
@@ -166,7 +174,7 @@ def test_the_cli_says_which_modes_it_fits_and_refuses_an_unknown_rule(tmp_path, 
     (tmp_path / "scan.ply").write_bytes(points_bytes(scan_from_view(sample_target(embedded_model, rng),
                                                                     embedded_model.faces, rng, 1500, 20.0)))
     fit = ["register", str(tmp_path / "scan.ply"), "--model", str(tmp_path / "moving.npz"), "--method", "pca",
-           "--align", "none", "--iterations", "5", "-q"]
+           "--align", "rigid", "--iterations", "5", "-q"]
     code, _, err = run([*fit, "-o", str(tmp_path / "a.ply")], capsys)
     assert code == 0 and "of the model's modes' variance is rigid motion" in err, err
     code, _, err = run([*fit, "-o", str(tmp_path / "b.ply"), "--rigid-modes", "keep"], capsys)

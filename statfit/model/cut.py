@@ -137,15 +137,18 @@ def check_rigid_modes(rigid_modes: str) -> str:
     return rigid_modes
 
 
-def fitting_model(model: StatModel, rigid_modes: str = "auto") -> StatModel:
+def fitting_model(model: StatModel, rigid_modes: str = "auto", finds_pose: bool = True) -> StatModel:
     """The model a fit uses: ``keep``, the model as given; ``drop``, :func:`without_rigid_motion`;
-    ``auto``, without its modes' rigid motion where that is more than :data:`MOSTLY_RIGID` of
-    their variance (a StatfitWarning says so) and some shape is left, else as given. The fit's
-    mesh is in the model's topology either way; the CLI's params project it onto the given model."""
+    ``auto``, without its modes' rigid motion where the fit ``finds_pose`` itself (the pose is then
+    the fit's, not the modes') and that motion is more than :data:`MOSTLY_RIGID` of their variance
+    (a StatfitWarning says so) and some shape is left, else as given. The fit's mesh is in the
+    model's topology either way; the CLI's params project it onto the given model."""
     if check_rigid_modes(rigid_modes) == "keep":
         return model
     if rigid_modes == "drop":
         return without_rigid_motion(model)
+    if not finds_pose:          # a scan or map in the model's frame: the modes may be all that moves it
+        return model
     share = rigid_motion_share(model)
     if share <= MOSTLY_RIGID:
         return model

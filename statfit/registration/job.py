@@ -64,9 +64,10 @@ def register(model: StatModel, points: np.ndarray | Scan, method: str = "default
     keeps to a region (``region``, or the face alone under hair): there the residual measures what
     the fit leaves out by design. Warns (StatfitWarning) when the scan is far from the model with align='none'.
     ``rigid_modes``: fit the model's modes as given or without their rigid motion
-    (:func:`statfit.model.cut.fitting_model`; ``auto``: without it where it is most of what they do).
+    (:func:`statfit.model.cut.fitting_model`; ``auto``: without it where it is most of what they do
+    and the pose is found, by ``align`` or ``landmarks``).
     """
-    model = fitting_model(model, rigid_modes)
+    model = fitting_model(model, rigid_modes, finds_pose=align != "none" or landmarks is not None)
     plan = plan_fits(model, method, preset, stages, overrides, trim, refresh_every, landmark_weight, fallback,
                      device, threads)
     with intra_op_threads(plan.threads):

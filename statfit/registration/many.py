@@ -78,7 +78,8 @@ def register_many(model: StatModel, scans: Sequence[np.ndarray | Scan], method: 
     option raises StatfitError (it would fail every fit)."""
     if landmarks is not None and len(landmarks) != len(scans):
         raise StatfitError(f"{len(scans)} scans but {len(landmarks)} landmark sets")
-    model = fitting_model(model, rigid_modes)
+    marked = landmarks is not None and any(each is not None for each in landmarks)
+    model = fitting_model(model, rigid_modes, finds_pose=align != "none" or marked)
     plan = plan_fits(model, method, preset, stages, overrides, trim, refresh_every, landmark_weight, fallback, device,
                      threads)
     members = [_Scan(i) for i in range(len(scans))]

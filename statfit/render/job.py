@@ -152,9 +152,9 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
     one way (:func:`one_sided_silhouette`), else two-sided (a map cannot tell a cut outline from the
     subject's: docs/studies.md §24). ``rigid_modes``: fit the model's modes as given or without their
     rigid motion (:func:`statfit.model.cut.fitting_model`; ``auto``: without it where it is most of
-    what they do).
+    what they do and ``align`` finds the pose).
     """
-    model = fitting_model(model, rigid_modes)
+    model = fitting_model(model, rigid_modes, finds_pose=align != "none")
     stages = checked_stages(model, align, silhouette, silhouette_weight, stages, method, preset, region, overrides)
     torch_device = resolve_device(device, "render")
     threads = choose_threads(model.basis.size + RENDER_FLOATS_PER_PIXEL * normal_map.mask.size, threads)

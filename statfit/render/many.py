@@ -73,7 +73,7 @@ def reconstruct_many(model: StatModel, normal_maps: Sequence[NormalMap], cameras
     raises StatfitError (it would fail every fit)."""
     if len(cameras) != len(normal_maps):
         raise StatfitError(f"{len(normal_maps)} normal maps but {len(cameras)} cameras")
-    model = fitting_model(model, rigid_modes)
+    model = fitting_model(model, rigid_modes, finds_pose=align != "none")
     stages = checked_stages(model, align, silhouette, silhouette_weight, stages, method, preset, region, overrides)
     torch_device = resolve_device(device, "render")
     largest = max((each.mask.size for each in normal_maps), default=0)
