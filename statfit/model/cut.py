@@ -111,14 +111,24 @@ def without_rigid_motion(model: StatModel) -> StatModel:
     falls with the body's height, so most of its modes' variance is where the head is, not its shape
     (MakeHuman's: 99.8%). A fit finds the pose itself; modes that move the part rigidly trade against
     it. To first order every shape of the model is a rigid motion of a shape of this one. Modes left
-    with (almost) nothing are dropped (StatfitError if every one is); landmarks and regions are kept. Not for every model: on a face
-    mask (30% rigid) `register`'s default guessed the unseen half worse without it, though `render`
-    fitted closer (docs/studies.md §43)."""
-    shaped = _less_rigid_motion(model)
-    if np.linalg.norm(shaped) <= RIGID_ONLY * np.linalg.norm(model.std):
+    with (almost) nothing are dropped (StatfitError if every one is); landmarks and regions are
+    kept. Not for every model: on a face mask (30% rigid) `register`'s default guessed the unseen
+    half worse without it, though `render` fitted closer (docs/studies.md §43); the jobs apply it
+    above :data:`MOSTLY_RIGID` (:func:`fitting_model`)."""
+    return _with_modes(model, _less_rigid_motion(model))
+
+
+def _with_modes(model: StatModel, shaped: np.ndarray) -> StatModel:
+    """The model with the modes ``shaped`` (3N, K) (directions times standard deviations,
+    :func:`_less_rigid_motion`), re-derived by SVD; StatfitError if nothing is left of them."""
+    if _nothing_left(model, shaped):
         raise StatfitError("the model's modes only move it rigidly: without that motion no mode is left")
     return model_from_arrays(model.template, model.faces, shaped.reshape(model.num_vertices, 3, -1), model.landmarks,
                              model.regions, source=f"{model.source} (without rigid motion)")
+
+
+def _nothing_left(model: StatModel, shaped: np.ndarray) -> bool:
+    return bool(np.linalg.norm(shaped) <= RIGID_ONLY * np.linalg.norm(model.std))
 
 
 RIGID_MODES = ("auto", "keep", "drop")
@@ -149,23 +159,24 @@ def fitting_model(model: StatModel, rigid_modes: str = "auto", finds_pose: bool 
         return without_rigid_motion(model)
     if not finds_pose:          # a scan or map in the model's frame: the modes may be all that moves it
         return model
-    share = rigid_motion_share(model)
-    if share <= MOSTLY_RIGID:
-        return model
-    try:
-        freed = without_rigid_motion(model)
-    except StatfitError:        # modes that only move it: nothing would be left, so the fit has them as given
+    shaped = _less_rigid_motion(model)
+    share = _rigid_share(model, shaped)
+    if share <= MOSTLY_RIGID or _nothing_left(model, shaped):   # nothing left: the fit has them as given
         return model
     warnings.warn(f"{share:.1%} of the model's modes' variance is rigid motion (a part cut from a larger model?): "
                   "the fit uses its modes without it (--rigid-modes keep: as built)", StatfitWarning, stacklevel=2)
-    return freed
+    return _with_modes(model, shaped)
 
 
 def rigid_motion_share(model: StatModel) -> float:
     """The share of the modes' variance that is small rigid motion of the template (0–1;
     :func:`without_rigid_motion`)."""
+    return _rigid_share(model, _less_rigid_motion(model))
+
+
+def _rigid_share(model: StatModel, shaped: np.ndarray) -> float:
     total = float((model.std**2).sum())
-    return 1.0 - float((_less_rigid_motion(model) ** 2).sum()) / total if total > 0 else 0.0
+    return 1.0 - float((shaped**2).sum()) / total if total > 0 else 0.0
 
 
 def _less_rigid_motion(model: StatModel) -> np.ndarray:
