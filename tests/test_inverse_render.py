@@ -301,15 +301,17 @@ def test_a_default_render_fit_reuses_the_visibility_in_its_stages_and_not_in_its
     from statfit.renderer.steady import SteadyRenderer
 
     normal_map, camera = normal_map_scene(embedded_model, 48)
-    counts: dict[int, list[int]] = {}
+    # keyed by the renderer itself, which the dict keeps alive: keyed by id(), a renderer made after
+    # the alignment's was collected can take its id and the two counts merge
+    counts: dict[SteadyRenderer, list[int]] = {}
     call, refresh = SteadyRenderer.__call__, SteadyRenderer._visibility
 
     def counted_call(self, *args, **kwargs):
-        counts.setdefault(id(self), [0, 0])[0] += 1
+        counts.setdefault(self, [0, 0])[0] += 1
         return call(self, *args, **kwargs)
 
     def counted_refresh(self, *args, **kwargs):
-        counts.setdefault(id(self), [0, 0])[1] += 1
+        counts.setdefault(self, [0, 0])[1] += 1
         return refresh(self, *args, **kwargs)
 
     with pytest.MonkeyPatch.context() as patch:
