@@ -4,7 +4,8 @@ family's model (issue 37; docs/studies.md §18). The render counterpart of ``cro
 Families and people: benchmarks/families.py. Each person (their own topology) is placed where a
 calibrated camera would see them in the model's frame: in the model's units, their centroid on the
 model's mean shape's (all families face +z, y up), so nothing but the shape and the exact pose is
-left to find. They are rendered as a world-space normal map from a frontal-oblique view (yaw
+left to find (``misplaced``: turned and moved off that place, so the pose is to find too;
+docs/studies.md §45). They are rendered as a world-space normal map from a frontal-oblique view (yaw
 15–35°, pitch 5°, ``--size``²) and fitted by ``reconstruct`` with each method at its own tuned
 settings and the job's default (rigid) alignment, one thread. Scores need no vertex correspondence: 20,000 points drawn
 by area on the person's surface, their distance to the fitted surface (leaving out the points beyond
@@ -34,9 +35,12 @@ METHODS = ("default", "pca", "statistical", "hybrid", "laplacian")
 POINTS = 20_000
 
 
-def render_case(people: str, model_family: str, seed: int, size: int):
+def render_case(people: str, model_family: str, seed: int, size: int, misplaced: float = 0.0):
     """The person placed in the model's frame (vertices, in the model's units), their normal map and
-    camera, and points on their surface with whether the map shows each."""
+    camera, and points on their surface with whether the map shows each. ``misplaced`` > 0: the
+    person is then turned by that many degrees about a random axis through their centroid and moved
+    by that many % of their RMS radius in a random direction (a camera calibrated to the model's
+    frame only so well), so the fit must find the pose, depth included, rather than start on it."""
     import torch
     import trimesh
 
@@ -49,6 +53,8 @@ def render_case(people: str, model_family: str, seed: int, size: int):
     faces, template = family_model(people).faces, family_model(model_family).template
     shape = person(people, seed) * (METRES_PER_UNIT[people] / METRES_PER_UNIT[model_family])
     shape = shape - shape.mean(axis=0) + template.mean(axis=0)
+    if misplaced > 0:
+        shape = _misplaced(shape, misplaced, np.random.default_rng(700 + seed))
     yaw = float(np.random.default_rng(900 + seed).uniform(15, 35))
     camera = camera_for_view(shape, yaw, 5.0, size)
     normal_map = NormalMap(*render_target(shape, faces, camera))
@@ -58,7 +64,19 @@ def render_case(people: str, model_family: str, seed: int, size: int):
     return shape, normal_map, camera, points, seen
 
 
-def fit_case(people: str, model_family: str, seed: int, method: str, size: int) -> dict:
+def _misplaced(shape: np.ndarray, amount: float, rng: np.random.Generator) -> np.ndarray:
+    """``shape`` (N, 3) turned by ``amount`` degrees about a random axis through its centroid and
+    moved by ``amount`` % of its RMS radius in a random direction."""
+    from scipy.spatial.transform import Rotation
+
+    axis, direction = (v / np.linalg.norm(v) for v in rng.normal(size=(2, 3)))
+    centre = shape.mean(axis=0)
+    radius = float(np.sqrt(((shape - centre) ** 2).sum(axis=1).mean()))
+    turned = Rotation.from_rotvec(np.radians(amount) * axis).apply(shape - centre) + centre
+    return turned + amount / 100 * radius * direction
+
+
+def fit_case(people: str, model_family: str, seed: int, method: str, size: int, misplaced: float = 0.0) -> dict:
     import torch
 
     torch.set_num_threads(1)
@@ -68,9 +86,10 @@ def fit_case(people: str, model_family: str, seed: int, method: str, size: int) 
     from statfit.render.job import reconstruct
 
     flush_denormals_everywhere()
-    shape, normal_map, camera, points, seen = render_case(people, model_family, seed, size)
+    shape, normal_map, camera, points, seen = render_case(people, model_family, seed, size, misplaced)
     model = family_model(model_family)
     row = {"people": people, "model": model_family, "seed": seed, "method": method, "size": size}
+    row |= {"misplaced": misplaced} if misplaced > 0 else {}
     try:
         fit = reconstruct(model, normal_map, camera, method, threads=1)
     except Exception as exc:   # a refusal is a result too

@@ -26,11 +26,11 @@ SEEDS = (0, 1)
 SIZE = 256
 
 
-def fit_case(people: str, variant: str, seed: int, method: str, size: int) -> dict:
+def fit_case(people: str, variant: str, seed: int, method: str, size: int, misplaced: float = 0.0) -> dict:
     use_variants()
     from cross_family_render import fit_case as fit_view
 
-    return fit_view(people, variant, seed, method, size)
+    return fit_view(people, variant, seed, method, size, misplaced)
 
 
 def runs() -> list[tuple]:
@@ -45,6 +45,18 @@ def report(rows: list[dict]) -> str:
     from cross_family_render import report as view_report
 
     return view_report(rows)
+
+
+MISPLACED = 5.0     # degrees turned and % of the radius moved, where a study also misplaces the person
+
+
+def placement_report(rows: list[dict]) -> str:
+    """:func:`report`'s tables, one for the people misplaced by MISPLACED (the fit must find the
+    pose) and one for those placed on the model's mean (§18: the fit starts on the true pose)."""
+    return "\n\n".join(f"**{title}**\n\n" + report([r for r in rows if r.get("misplaced", 0.0) == misplaced])
+                       for misplaced, title in ((MISPLACED, f"Misplaced by {MISPLACED:g}° and {MISPLACED:g}%"),
+                                                (0.0, "Placed on the model's mean (§18)"))
+                       if any(r.get("misplaced", 0.0) == misplaced for r in rows))
 
 
 if __name__ == "__main__":

@@ -188,11 +188,12 @@ def normal_angle(fit: np.ndarray, gt: np.ndarray, faces: np.ndarray, where: np.n
 
 
 def run_case(task: tuple[int, float, float, str, int], iterations: int | None = None,
-             align_shape_lr: float | None = None, also_at: tuple[int, ...] = ()) -> dict:
+             align_shape_lr: float | None = None, also_at: tuple[int, ...] = (), rigid_modes: str = "auto") -> dict:
     """One fit of a held-out body from one view; ``iterations`` other than the method's (tests);
     ``align_shape_lr`` the rigid alignment's step on the coefficients (None: as shipped);
     ``also_at``: iteration counts (multiples of 10) whose rows come too, under "at", from the
-    fit's own snapshots: the row a shorter fit of a method with a constant step would give."""
+    fit's own snapshots: the row a shorter fit of a method with a constant step would give;
+    ``rigid_modes``: the model's modes with or without their rigid motion (``reconstruct``'s)."""
     seed, yaw, pitch, method, size = task
     import torch
 
@@ -214,7 +215,7 @@ def run_case(task: tuple[int, float, float, str, int], iterations: int | None = 
     started = time.perf_counter()
     overrides = {} if iterations is None else {"iterations": iterations}
     fit = reconstruct(model, normal_map, camera, method, threads=1, on_snapshot=keep if also_at else None,
-                      **(overrides | schedule(method))).vertices
+                      rigid_modes=rigid_modes, **(overrides | schedule(method))).vertices
     seconds = time.perf_counter() - started
     seen = visible_vertices(gt, model.faces, camera)
     row = {"seed": seed, "yaw": yaw, "pitch": pitch, "method": method, "size": size, "seconds": seconds,

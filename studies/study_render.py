@@ -101,6 +101,9 @@ CONFIGS: dict[str, tuple[str, str, dict]] = {
     "none lr 0.001": ("", "", {"stages": (S("none", 3000, 0.001),)}),
     "regularized β10 lr 0.01": ("", "", {"stages": (S("regularized", 3000, 0.01, beta=10.0),)}),
     "default": ("default", "tuned", {}),
+    # The model's modes as built and without their rigid motion (docs/studies.md §45).
+    "default (rigid modes kept)": ("default", "tuned", {"rigid_modes": "keep"}),
+    "default (rigid modes dropped)": ("default", "tuned", {"rigid_modes": "drop"}),
     # Render schedules from the converged alignment start (--align-shape-lr 0.05; docs/studies.md §13).
     "two hybrid stages (the default until session 9)": ("", "", {"stages": _TWO_HYBRID}),
     "two hybrid stages → laplacian 300": ("", "", {"stages": (*_TWO_HYBRID, S("laplacian", 300, 0.01, lam=19.0))}),
