@@ -14,6 +14,7 @@ radius, over all points, those on triangles the map shows (``seen``) and the res
 
     python studies/cross_family_render.py --people 2 [--size 256]   # cases run two at a time
     python studies/cross_family_render.py --report                  # tables from the stored rows
+    python studies/cross_family_render.py --misplaced 5 [--report]  # the people misplaced (§45)
 """
 from __future__ import annotations
 
@@ -31,6 +32,7 @@ from families import FAMILIES  # noqa: E402
 from study_runs import run_or_report  # noqa: E402
 
 RESULTS = ROOT / "studies" / "results" / "cross_family_render.json"
+RESULTS_MISPLACED = ROOT / "studies" / "results" / "cross_family_render_misplaced.json"
 METHODS = ("default", "pca", "statistical", "hybrid", "laplacian")
 POINTS = 20_000
 
@@ -140,16 +142,20 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=256, help="normal map side (pixels)")
     parser.add_argument("--families", nargs="*", default=list(FAMILIES[:3]), help=f"of {', '.join(FAMILIES)}")
     parser.add_argument("--methods", nargs="*", default=list(METHODS))
+    parser.add_argument("--misplaced", type=float, default=0.0,
+                        help="turn and move each person by this many degrees and % of their radius off the "
+                             "model's mean (the fit must find the pose; rows in RESULTS_MISPLACED)")
     parser.add_argument("--report", action="store_true", help="only print the tables of the stored rows")
     args = parser.parse_args()
-    runs = [(p, m, s, method, args.size) for p in args.families for m in args.families for s in range(args.people)
-            for method in args.methods]
+    runs = [(p, m, s, method, args.size, args.misplaced) for p in args.families for m in args.families
+            for s in range(args.people) for method in args.methods]
     if not args.report:
         from families import build_all
 
         build_all(args.families, args.people)
-    run_or_report(fit_case, runs, RESULTS, report, args.report,
-                  key=lambda row: (row["people"], row["model"], row["seed"], row["method"], row["size"]))
+    run_or_report(fit_case, runs, RESULTS_MISPLACED if args.misplaced else RESULTS, report, args.report,
+                  key=lambda row: (row["people"], row["model"], row["seed"], row["method"], row["size"],
+                                   row.get("misplaced", 0.0)))
 
 
 if __name__ == "__main__":
