@@ -181,8 +181,8 @@ def cut(
     rigid_free: bool = typer.Option(False, "--without-rigid-motion",
                                     help="Take the modes' rigid motion out (after the cut). For a part whose modes "
                                     "mostly move it, as a head cut from a body model rises with the body's height "
-                                    "(`model info`: rigid motion); register, render and batch do it by themselves above 90% "
-                                    "(--rigid-modes; docs/studies.md §43–§44)."),
+                                    "(`model info`: rigid motion); register, render and batch do it by themselves "
+                                    "above 90% (--rigid-modes; docs/studies.md §43–§44)."),
     json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
 ) -> None:
     """Another model made from MODEL: a region of it, fewer vertices, other units, its modes without

@@ -43,17 +43,14 @@ VIEW_AXIS: list[np.ndarray] = []   # the case's viewing axis (model frame), for 
 def without_rotation(model):
     """``model`` with its modes' small rotations about the template's centroid taken out (the part
     of each mode's least-squares rigid motion not a translation), its translations kept."""
+    from statfit.model.cut import rigid_motion_basis
     from statfit.model.statmodel import model_from_arrays
 
-    n = model.num_vertices
-    centred = model.template - model.template.mean(axis=0)
-    fields = [np.broadcast_to(axis, (n, 3)) for axis in np.eye(3)] + [np.cross(axis, centred) for axis in np.eye(3)]
-    rigid, _ = np.linalg.qr(np.stack([field.reshape(-1) for field in fields], axis=1))
-    turns = rigid[:, 3:]                 # the rotations, orthogonal to the translations
+    turns = rigid_motion_basis(model.template)[:, 3:]      # the rotations, orthogonal to the translations
     modes = model.basis * model.std
     shaped = modes - turns @ (turns.T @ modes)
-    return model_from_arrays(model.template, model.faces, shaped.reshape(n, 3, -1), model.landmarks, model.regions,
-                             source=f"{model.source}{ROTATION_FREE}")
+    return model_from_arrays(model.template, model.faces, shaped.reshape(model.num_vertices, 3, -1), model.landmarks,
+                             model.regions, source=f"{model.source}{ROTATION_FREE}")
 
 
 def with_depth(model, freed, axis: np.ndarray):

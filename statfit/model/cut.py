@@ -182,10 +182,17 @@ def _rigid_share(model: StatModel, shaped: np.ndarray) -> float:
 def _less_rigid_motion(model: StatModel) -> np.ndarray:
     """(3N, K): the modes (directions times standard deviations) less their least-squares small
     rigid motion of the template (translations, and rotations about its centroid)."""
-    n = model.num_vertices
-    centred = model.template - model.template.mean(axis=0)
-    axes = np.eye(3)
-    fields = [np.broadcast_to(axis, (n, 3)) for axis in axes] + [np.cross(axis, centred) for axis in axes]
-    rigid, _ = np.linalg.qr(np.stack([field.reshape(-1) for field in fields], axis=1))    # (3N, 6) orthonormal
+    rigid = rigid_motion_basis(model.template)
     modes = model.basis * model.std
     return modes - rigid @ (rigid.T @ modes)
+
+
+def rigid_motion_basis(template: np.ndarray) -> np.ndarray:
+    """(3N, 6) orthonormal: the small rigid motions of ``template`` (N, 3) as flattened vertex
+    displacements; its first three columns span the translations, the last three the rotations
+    about the centroid less their translation part."""
+    n = len(template)
+    centred = template - template.mean(axis=0)
+    axes = np.eye(3)
+    fields = [np.broadcast_to(axis, (n, 3)) for axis in axes] + [np.cross(axis, centred) for axis in axes]
+    return np.linalg.qr(np.stack([field.reshape(-1) for field in fields], axis=1))[0]
