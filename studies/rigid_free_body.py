@@ -1,15 +1,16 @@
 """Does `render` fit a whole body closer without its model's modes' rigid motion? The body study's
 model (studies/study_body.py: 300 modes from 5,000 MakeHuman bodies) keeps most of its modes'
 variance in rigid motion — a taller body's centroid is higher — but under the jobs' 90% rule
-(docs/studies.md §44), so it is fitted as built. ICT's head (21% rigid) fitted 2× closer in
-`render` without it (§45).
+(docs/studies.md §44), so it is fitted as built. ICT's head (21% rigid) fitted people placed off
+its frame 14–25% closer in `render` without it (§45).
 
 The body study's cases (held-out bodies 1–6, yaw 30° and −60°, pitch 10°) at 160² (the study's
 384² takes 4× as long), the default, with the modes as built (``keep``) and without their rigid
 motion (``drop``), side by side. Scored as the body study scores (mm, vertex error after the
-least-squares similarity to the truth, so neither placement is rewarded for starting on the pose).
+least-squares similarity to the truth, so neither is rewarded for starting on the pose; it also
+takes out an offset in depth, which §45 found to cost ICT's own cases).
 
-    python studies/rigid_free_body.py            # ~15 min on 2 cores
+    python studies/rigid_free_body.py            # ~25 min on 2 cores
     python studies/rigid_free_body.py --report
 """
 from __future__ import annotations

@@ -2,7 +2,7 @@
 fifth of what its modes do (21.3%, under the jobs' 90% rule, docs/studies.md §44)? In `render` the
 rigid alignment finds the pose before the fit and the fit cannot turn the model, so modes that move
 the head only trade with that pose: ICT's mask (29.5%) fitted its own people 5.5× closer without
-them (§43). ICT's head is the family the render defaults were chosen on.
+them (§43, each person placed on the true pose). ICT's head is the family the render defaults were chosen on.
 
 §18's protocol (studies/cross_family_render.py: a person in one normal map at 256², the default
 rigid alignment, each method at its tuned settings; distance of the person's surface points to the
