@@ -7,15 +7,16 @@ translation along the viewing axis trades with the shape's size from one view). 
 modes' translations can still move the fit in depth, under their prior; without the rigid motion
 nothing can. So: the modes less their small rotations about the template's centroid only (their
 translations kept), and the modes without their rigid motion plus one mode, a translation along the
-map's viewing axis (its standard deviation that of the modes' translations along it), beside as
-built and without all rigid motion, on
+map's viewing axis (its standard deviation that of the modes' translations along it), and the
+modes without rigid motion with the alignment's translation free along the viewing axis too
+(session 42: it runs away in depth), beside as built and without all rigid motion, on
 
 1. §5's four ICT cases at 512² (studies/study_render.py; mean vertex error and its mean offset
    along the viewing axis, % of the RMS radius; the default), and
 2. §45's misplaced cross-family cases with ICT's head (studies/cross_family_render.py, 256²,
    people misplaced by 5° and 5%; the default).
 
-    python studies/rigid_free_depth.py            # ~20 min on 2 cores
+    python studies/rigid_free_depth.py            # ~25 min on 2 cores
     python studies/rigid_free_depth.py --report
 """
 from __future__ import annotations
@@ -36,7 +37,8 @@ from study_runs import study_main  # noqa: E402
 RESULTS = ROOT / "studies" / "results" / "rigid_free_depth.json"
 ROTATION_FREE = " without rigid rotation"
 DEPTH_KEPT = " without rigid motion but depth"
-VARIANTS = ("ict", "ict" + FREED, "ict" + ROTATION_FREE, "ict" + DEPTH_KEPT)
+DEPTH_FOUND = " without rigid motion, depth aligned"
+VARIANTS = ("ict", "ict" + FREED, "ict" + ROTATION_FREE, "ict" + DEPTH_KEPT, "ict" + DEPTH_FOUND)
 VIEW_AXIS: list[np.ndarray] = []   # the case's viewing axis (model frame), for DEPTH_KEPT's model
 
 
@@ -75,6 +77,8 @@ def variant_model(plain, name: str):
     if name.endswith(DEPTH_KEPT):
         model = plain(name.removesuffix(DEPTH_KEPT))
         return with_depth(model, without_rigid_motion(model), VIEW_AXIS[-1])
+    if name.endswith(DEPTH_FOUND):
+        return without_rigid_motion(plain(name.removesuffix(DEPTH_FOUND)))
     if name.endswith(ROTATION_FREE):
         return without_rotation(plain(name.removesuffix(ROTATION_FREE)))
     if name.endswith(FREED):
@@ -98,11 +102,20 @@ def use_variants() -> None:
     families._rotation_variants = True
 
 
+def align_depth(free: bool) -> None:
+    """Let the render alignment move the pose along the viewing axis too (``free``), or not (as built)."""
+    import statfit.render.job as job
+    from statfit.core.pose import fit_pose
+
+    job.fit_pose = (lambda *args, **kwargs: fit_pose(*args, **(kwargs | {"fixed_axis": None}))) if free else fit_pose
+
+
 def fit_case(kind: str, variant: str, case: str, seed: int) -> dict:
     import torch
 
     torch.set_num_threads(1)
     use_variants()
+    align_depth(variant.endswith(DEPTH_FOUND))
     row = {"kind": kind, "variant": variant, "case": case, "seed": seed}
     if kind == "cross-family":
         from cross_family_render import fit_case as fit_view, render_case
