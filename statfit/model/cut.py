@@ -140,6 +140,15 @@ RIGID_MODES = ("auto", "keep", "drop")
 MOSTLY_RIGID = 0.9
 
 
+# In a job whose alignment finds the pose before the fit (``render``), ``auto`` also drops it below
+# MOSTLY_RIGID where that alignment moved the model farther than this many standard deviations of the
+# modes' own rigid motion (:func:`rigid_motion_distance`; 4.1 is the 99th percentile of that distance
+# over six degrees of freedom): the person is then not where the model places its people, and the
+# modes' rigid motion, the model's statistics of that place, only trades with the found pose
+# (docs/studies.md §46).
+OFF_ITS_PLACE = 4.1
+
+
 def check_rigid_modes(rigid_modes: str) -> str:
     """``rigid_modes`` if it is one of :data:`RIGID_MODES`, else StatfitError."""
     if rigid_modes not in RIGID_MODES:
@@ -166,6 +175,35 @@ def fitting_model(model: StatModel, rigid_modes: str = "auto", finds_pose: bool 
     warnings.warn(f"{share:.1%} of the model's modes' variance is rigid motion (a part cut from a larger model?): "
                   "the fit uses its modes without it (--rigid-modes keep: as built)", StatfitWarning, stacklevel=2)
     return _with_modes(model, shaped)
+
+
+def alignment_decides(model: StatModel, rigid_modes: str, finds_pose: bool) -> bool:
+    """Whether ``auto`` leaves the modes' rigid motion to what the fit's alignment finds
+    (:data:`OFF_ITS_PLACE`): a model that :func:`fitting_model` fits as given (at most
+    :data:`MOSTLY_RIGID` rigid) whose modes have some rigid motion and some shape."""
+    return check_rigid_modes(rigid_modes) == "auto" and finds_pose and 0.0 < rigid_motion_share(model) <= MOSTLY_RIGID
+
+
+def rigid_motion_distance(model: StatModel, rotation: np.ndarray, shift: np.ndarray) -> float:
+    """How far a rigid move of the model lies outside its modes' own rigid motion: ``rotation``
+    (3, 3), and ``shift`` (3,), the template centroid's move in the model's units. The Mahalanobis
+    distance (in standard deviations) of the move (shift in RMS radii, rotation vector in radians)
+    under the covariance (6, 6) of the modes' least-squares rigid motions; a move in a direction
+    the modes do not move the model is far (a floor of 1e-9 of the variance)."""
+    from scipy.spatial.transform import Rotation
+
+    centred = model.template - model.template.mean(axis=0)
+    radius = float(np.sqrt((centred**2).sum(axis=1).mean()))
+    n = len(centred)
+    fields = ([np.broadcast_to(radius * axis, (n, 3)) for axis in np.eye(3)]
+              + [np.cross(axis, centred) for axis in np.eye(3)])
+    generators = np.stack([field.reshape(-1) for field in fields], axis=1)    # (3N, 6): a radius, a radian
+    motions = np.linalg.solve(generators.T @ generators, generators.T @ (model.basis * model.std))   # (6, K)
+    covariance = motions @ motions.T
+    covariance += 1e-9 * max(float(np.trace(covariance)), np.finfo(float).tiny) * np.eye(6)
+    move = np.concatenate([np.asarray(shift, dtype=float) / radius,
+                           Rotation.from_matrix(np.asarray(rotation, dtype=float)).as_rotvec()])
+    return float(np.sqrt(move @ np.linalg.solve(covariance, move)))
 
 
 def rigid_motion_share(model: StatModel) -> float:

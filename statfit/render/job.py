@@ -15,6 +15,7 @@ head radius on test cases); use similarity to estimate a scale. docs/method.md h
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -23,13 +24,14 @@ import torch
 
 from statfit.geometry.align import Similarity, compose
 from statfit.geometry.metrics import of_part_of_a_subject
-from statfit.errors import StatfitError
+from statfit.errors import StatfitError, StatfitWarning
 from statfit.core.fit import StageTimer
 from statfit.structures.frame import Frame, surface_vertices
 from statfit.structures.normal_map import NormalMap
 from statfit.core.methods import resolve
 from statfit.core.settings import FitSpace, Settings
-from statfit.model.cut import fitting_model
+from statfit.model.cut import (OFF_ITS_PLACE, alignment_decides, fitting_model, rigid_motion_distance,
+                               without_rigid_motion)
 from statfit.model.statmodel import StatModel, region_triangles
 from statfit.objectives.normals import NormalMapObjective
 from statfit.objectives.weights import SILHOUETTE_WEIGHT
@@ -152,8 +154,10 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
     one way (:func:`one_sided_silhouette`), else two-sided (a map cannot tell a cut outline from the
     subject's: docs/studies.md §24). ``rigid_modes``: fit the model's modes as given or without their
     rigid motion (:func:`statfit.model.cut.fitting_model`; ``auto``: without it where it is most of
-    what they do and ``align`` finds the pose).
+    what they do and ``align`` finds the pose, or where the alignment moved the model off the place
+    its modes give its people, :func:`posed_view`).
     """
+    decides = alignment_decides(model, rigid_modes, finds_pose=align != "none")
     model = fitting_model(model, rigid_modes, finds_pose=align != "none")
     stages = checked_stages(model, align, silhouette, silhouette_weight, stages, method, preset, region, overrides)
     torch_device = resolve_device(device, "render")
@@ -162,7 +166,7 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
         torch.manual_seed(seed)
         started = time.perf_counter()
         timer = timer or StageTimer.for_device(torch_device)
-        view = PosedView.of(model, normal_map, camera, torch_device, dtype, normal_space=normal_space,
+        view = posed_view(model, decides, normal_map, camera, torch_device, dtype, normal_space=normal_space,
                             normal_convention=normal_convention, align=align, init=init,
                             silhouette_weight=silhouette_weight, silhouette=silhouette, region=region, timer=timer,
                             **visibility_options(preset, torch_device))
@@ -201,14 +205,16 @@ class PosedView:
     mask: torch.Tensor
     camera: Camera
     options: dict[str, Any]
+    rigid_free: bool = False    # fitted without the modes' rigid motion by :func:`posed_view`'s rule
 
     @classmethod
     def of(cls, model: StatModel, normal_map: NormalMap, camera: Camera, device: torch.device, dtype: torch.dtype, *,
            normal_space: str = "world", normal_convention: str = "opencv", align: str = "rigid",
            init: np.ndarray | None = None, silhouette_weight: float = SILHOUETTE_WEIGHT, silhouette: str = "auto",
            region: str | None = None, timer: StageTimer | None = None, visibility_every: int = 1,
-           visibility_moved: float | None = None) -> PosedView:
-        """Check the map and the framing, find the pose (``align``) and set up the data terms."""
+           visibility_moved: float | None = None, pose_from: Similarity | None = None) -> PosedView:
+        """Check the map and the framing, find the pose (``align``; from ``pose_from``, a pose an
+        earlier alignment found, instead of the silhouettes' centring) and set up the data terms."""
         sides = silhouette_sides(silhouette, model)
         one_sided, covering = sides == "one-sided", sides == "covering"
         timer = timer or StageTimer.for_device(device)
@@ -228,7 +234,7 @@ class PosedView:
         if align != "none":
             with timer("alignment"):
                 unit_camera = camera_in_frame(camera, frame)
-                guess = _centring_guess(x0, faces, unit_camera, normal_map.mask, align == "similarity")
+                guess = pose_from or _centring_guess(x0, faces, unit_camera, normal_map.mask, align == "similarity")
                 coarse = NormalMapObjective(*downsampled(target, mask, unit_camera, ALIGN_SIZE), faces,
                                             silhouette_weight, adjacency, one_sided=one_sided, covering=covering,
                                             **alignment_visibility(visibility_every, visibility_moved))
@@ -240,6 +246,13 @@ class PosedView:
                        visibility_every=visibility_every, visibility_moved=visibility_moved)
         objective = NormalMapObjective(target, mask, posed_camera, **options)
         return cls(space, objective, x0, frame, pose, target, mask, posed_camera, options)
+
+    def moved_by(self, model: StatModel) -> float:
+        """How far the alignment moved ``model`` (the model this view was made with) off its place, in
+        standard deviations of its modes' rigid motion (:func:`statfit.model.cut.rigid_motion_distance`)."""
+        centroid = self.frame.to_unit(model.template).mean(axis=0)
+        shift = (self.pose.scale * self.pose.rotation @ centroid + self.pose.translation - centroid) * self.frame.scale
+        return rigid_motion_distance(model, self.pose.rotation, shift)
 
     def to_world(self, x: torch.Tensor) -> np.ndarray:
         """Unit-frame vertices (N, 3) in the world frame (float64)."""
@@ -254,6 +267,24 @@ class PosedView:
         from_unit = Similarity(self.frame.scale, np.eye(3), self.frame.center)
         return Fit(self.to_world(result.vertices), compose(from_unit, compose(self.pose, to_unit)), stages,
                    result.loss, seconds, dict(timer.seconds), result.iterations, threads=threads)
+
+
+def posed_view(model: StatModel, decides: bool, normal_map: NormalMap, camera: Camera, device: torch.device,
+               dtype: torch.dtype, **options: Any) -> PosedView:
+    """:meth:`PosedView.of`; where ``decides`` (:func:`statfit.model.cut.alignment_decides`) and its
+    alignment moved the model more than OFF_ITS_PLACE standard deviations of its modes' rigid motion,
+    made again with the model without that motion, its alignment starting from the pose found (a
+    StatfitWarning says so): the person is not where the model places its people, so that motion
+    would only trade with the pose (docs/studies.md §46)."""
+    view = PosedView.of(model, normal_map, camera, device, dtype, **options)
+    if decides and (distance := view.moved_by(model)) > OFF_ITS_PLACE:
+        warnings.warn(f"the alignment moved the model {distance:.1f} standard deviations of its modes' rigid motion "
+                      "off where they place its people: the fit uses its modes without their rigid motion "
+                      "(--rigid-modes keep: as built)", StatfitWarning, stacklevel=3)
+        view = PosedView.of(without_rigid_motion(model), normal_map, camera, device, dtype, pose_from=view.pose,
+                            **options)
+        view.rigid_free = True
+    return view
 
 
 def silhouette_sides(silhouette: str, model: StatModel) -> str:

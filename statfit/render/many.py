@@ -25,11 +25,11 @@ from statfit.core.stages import PipelineResult
 from statfit.core.threads import choose_threads, intra_op_threads
 from statfit.core.together import FitOutcome, Member, fits_in_memory, run_stages_together
 from statfit.errors import StatfitError
-from statfit.model.cut import fitting_model
+from statfit.model.cut import alignment_decides, fitting_model
 from statfit.model.statmodel import StatModel
 from statfit.objectives.normals import NormalMapObjective
 from statfit.objectives.weights import SILHOUETTE_WEIGHT
-from statfit.render.job import RENDER_FLOATS_PER_PIXEL, PosedView, checked_stages, silhouette_sides
+from statfit.render.job import RENDER_FLOATS_PER_PIXEL, PosedView, checked_stages, posed_view, silhouette_sides
 from statfit.render.visibility import visibility_options
 from statfit.renderer import Camera
 from statfit.structures.normal_map import NormalMap
@@ -73,6 +73,7 @@ def reconstruct_many(model: StatModel, normal_maps: Sequence[NormalMap], cameras
     raises StatfitError (it would fail every fit)."""
     if len(cameras) != len(normal_maps):
         raise StatfitError(f"{len(normal_maps)} normal maps but {len(cameras)} cameras")
+    decides = alignment_decides(model, rigid_modes, finds_pose=align != "none")
     model = fitting_model(model, rigid_modes, finds_pose=align != "none")
     stages = checked_stages(model, align, silhouette, silhouette_weight, stages, method, preset, region, overrides)
     torch_device = resolve_device(device, "render")
@@ -85,15 +86,15 @@ def reconstruct_many(model: StatModel, normal_maps: Sequence[NormalMap], cameras
     with intra_op_threads(threads):
         torch.manual_seed(seed)
         for member, normal_map, camera in zip(members, normal_maps, cameras):
-            member.view = member.alone(PosedView.of, model, normal_map, camera, torch_device, dtype,
+            member.view = member.alone(posed_view, model, decides, normal_map, camera, torch_device, dtype,
                                        **options, timer=member.timer)
             if member.view is not None:
                 member.space, member.objective, member.x = member.view.space, member.view.objective, member.view.start
-        sizes: dict[tuple[int, ...], list[_View]] = {}
+        groups: dict[tuple, list[_View]] = {}   # one image size and one model's modes a group
         for member in members:
             if not member.failed:
-                sizes.setdefault(tuple(member.view.mask.shape), []).append(member)
-        for group in sizes.values():
+                groups.setdefault((*member.view.mask.shape, member.view.rigid_free), []).append(member)
+        for group in groups.values():
             run_stages_together(group, stages, _view_batch)
         for member in members:
             if not member.failed:
