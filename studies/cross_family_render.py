@@ -78,7 +78,10 @@ def _misplaced(shape: np.ndarray, amount: float, rng: np.random.Generator) -> np
     return turned + amount / 100 * radius * direction
 
 
-def fit_case(people: str, model_family: str, seed: int, method: str, size: int, misplaced: float = 0.0) -> dict:
+def fit_case(people: str, model_family: str, seed: int, method: str, size: int, misplaced: float = 0.0,
+             rigid_modes: str = "auto") -> dict:
+    import warnings
+
     import torch
 
     torch.set_num_threads(1)
@@ -93,9 +96,12 @@ def fit_case(people: str, model_family: str, seed: int, method: str, size: int, 
     row = {"people": people, "model": model_family, "seed": seed, "method": method, "size": size}
     row |= {"misplaced": misplaced} if misplaced > 0 else {}
     try:
-        fit = reconstruct(model, normal_map, camera, method, threads=1)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            fit = reconstruct(model, normal_map, camera, method, threads=1, rigid_modes=rigid_modes)
     except Exception as exc:   # a refusal is a result too
         return row | {"error": f"{type(exc).__name__}: {exc}".splitlines()[0]}
+    row |= {"rigid_free": any("without their rigid motion" in str(w.message) for w in caught)}
     radius = float(np.sqrt(((shape - shape.mean(axis=0)) ** 2).sum(axis=1).mean()))
     distance = 100.0 * inside_distance(points, fit.vertices, model.faces) / radius
     return row | {"all": float(np.nanmean(distance)), "seen": float(np.nanmean(distance[seen])),
