@@ -167,9 +167,9 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
         started = time.perf_counter()
         timer = timer or StageTimer.for_device(torch_device)
         view = posed_view(model, decides, normal_map, camera, torch_device, dtype, normal_space=normal_space,
-                            normal_convention=normal_convention, align=align, init=init,
-                            silhouette_weight=silhouette_weight, silhouette=silhouette, region=region, timer=timer,
-                            **visibility_options(preset, torch_device))
+                          normal_convention=normal_convention, align=align, init=init,
+                          silhouette_weight=silhouette_weight, silhouette=silhouette, region=region, timer=timer,
+                          **visibility_options(preset, torch_device))
         snapshot = None if on_snapshot is None else lambda it, x: on_snapshot(it, view.to_world(x))
         result = run_stages(stages, view.space, view.objective, view.start, on_record=on_record,
                             on_snapshot=snapshot, timer=timer)
