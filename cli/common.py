@@ -117,10 +117,10 @@ RigidModesOption = typer.Option("auto", "--rigid-modes", help="The model's modes
                                  "and rotation taken out, as `statfit model cut --without-rigid-motion` does; the "
                                  "fit finds the pose itself), or auto: drop it where it is more than 90% of what "
                                  "the modes do, as in a head cut from a body model (`statfit model info` prints the "
-                                 "share; docs/method.md), and in render also where the alignment moved the model "
-                                 "off the place its modes give its people (a photo not taken in the model's frame), "
-                                 "unless --align none without --landmarks. The mesh and --params are the given "
-                                 "model's either way.")
+                                 "share; docs/method.md), and in render, up to 50%, also where the alignment moved "
+                                 "the model off the place its modes give its people (a photo not taken in the "
+                                 "model's frame), unless --align none without --landmarks. The mesh and --params "
+                                 "are the given model's either way.")
 
 # Without a terminal, a progress line at most this often (seconds).
 PROGRESS_LINE_SECONDS = 5.0

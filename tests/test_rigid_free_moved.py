@@ -47,6 +47,7 @@ def test_the_alignment_decides_only_for_a_partly_rigid_model_under_auto_with_a_p
     assert not alignment_decides(embedded_model, "keep", finds_pose=True)
     assert not alignment_decides(embedded_model, "drop", finds_pose=True)        # dropped before
     assert not alignment_decides(moving_head(embedded_model), "auto", finds_pose=True)     # 98%: dropped before
+    assert not alignment_decides(moving_head(embedded_model, 1.0), "auto", finds_pose=True)   # 74%, as bodies: kept
     assert not alignment_decides(without_rigid_motion(embedded_model), "auto", finds_pose=True)   # none to drop
 
 
