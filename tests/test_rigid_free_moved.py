@@ -23,7 +23,8 @@ def rigid_model(embedded_model, shift_std: float, turn_std: float):
     fields = rigid_fields(template)
     along_x, about_z = fields[:, 0], fields[:, 5]
     shape = without_rigid_motion(embedded_model)
-    modes = np.concatenate([np.stack([shift_std * along_x, turn_std * about_z], axis=1), shape.basis * shape.std], axis=1)
+    moves = np.stack([shift_std * along_x, turn_std * about_z], axis=1)
+    modes = np.concatenate([moves, shape.basis * shape.std], axis=1)
     return model_from_arrays(template, embedded_model.faces, modes.reshape(-1, 3, modes.shape[1]))
 
 
@@ -34,8 +35,9 @@ def test_the_distance_is_the_move_in_standard_deviations_of_the_modes_rigid_moti
     assert rigid_motion_distance(model, np.eye(3), [0.05, 0.0, 0.0]) == pytest.approx(2.5, rel=1e-6)
     assert rigid_motion_distance(model, turn, np.zeros(3)) == pytest.approx(3.0, rel=1e-6)
     assert rigid_motion_distance(model, turn, [-0.08, 0.0, 0.0]) == pytest.approx(5.0, rel=1e-6)
-    # the same move of a model ten times larger (other units) is ten times smaller in its spread
-    large = model_from_arrays(10 * model.template, model.faces, (10 * model.basis * model.std).reshape(-1, 3, model.num_modes))
+    # in other units (the model ten times larger) the move ten times larger is as far
+    large = model_from_arrays(10 * model.template, model.faces,
+                              (10 * model.basis * model.std).reshape(-1, 3, model.num_modes))
     assert rigid_motion_distance(large, turn, [-0.8, 0.0, 0.0]) == pytest.approx(5.0, rel=1e-6)
     # a move the modes never make is far, however small
     assert rigid_motion_distance(model, np.eye(3), [0.0, 1e-3, 0.0]) > 100 * OFF_ITS_PLACE
