@@ -6,9 +6,10 @@ people closer without its modes' rigid motion when the fit must find the pose, a
 placed where its statistics place them, worse (the depth those statistics predict; one view cannot
 find it). The alignment tells the two apart: it leaves ICT's own §5 people where they are and moves
 the misplaced ones far (`statfit.model.cut.rigid_motion_distance`: 0 against 9–33 standard
-deviations of the modes' rigid motion). So `--rigid-modes auto` now fits without that motion where
-the alignment moved the model more than `OFF_ITS_PLACE` (4.1, the 99th percentile of that distance
-for the model's own people; chosen from the modes' statistics, not from these rows).
+deviations of the modes' rigid motion). So `--rigid-modes auto` now fits a model at most 50% rigid
+(`PLACE_DECIDES`: not MakeHuman's body model, whose size goes with its place) without that motion
+where the alignment moved it more than `OFF_ITS_PLACE` (4.1, the 99th percentile of that distance
+for a move drawn from the modes' own spread; chosen from the statistics, not from these rows).
 
 Side by side in one run, each case with `--rigid-modes keep` (as built) and `auto` (the rule):
 §18's protocol (studies/cross_family_render.py, 256², every method) with ICT's head and its face
