@@ -166,26 +166,26 @@ def fitting_model(model: StatModel, rigid_modes: str = "auto", finds_pose: bool 
     the fit's, not the modes') and that motion is more than :data:`MOSTLY_RIGID` of their variance
     (a StatfitWarning says so) and some shape is left, else as given. The fit's mesh is in the
     model's topology either way; the CLI's params project it onto the given model."""
+    return fitting_model_and_rule(model, rigid_modes, finds_pose)[0]
+
+
+def fitting_model_and_rule(model: StatModel, rigid_modes: str, finds_pose: bool) -> tuple[StatModel, bool]:
+    """:func:`fitting_model`'s model, and whether ``auto`` leaves the modes' rigid motion to what a
+    render fit's alignment finds (:data:`OFF_ITS_PLACE`): a model fitted as given whose modes have
+    some rigid motion, at most :data:`PLACE_DECIDES` of their variance."""
     if check_rigid_modes(rigid_modes) == "keep":
-        return model
+        return model, False
     if rigid_modes == "drop":
-        return without_rigid_motion(model)
+        return without_rigid_motion(model), False
     if not finds_pose:          # a scan or map in the model's frame: the modes may be all that moves it
-        return model
+        return model, False
     shaped = _less_rigid_motion(model)
     share = _rigid_share(model, shaped)
     if share <= MOSTLY_RIGID or _nothing_left(model, shaped):   # nothing left: the fit has them as given
-        return model
+        return model, 0.0 < share <= PLACE_DECIDES
     warnings.warn(f"{share:.1%} of the model's modes' variance is rigid motion (a part cut from a larger model?): "
-                  "the fit uses its modes without it (--rigid-modes keep: as built)", StatfitWarning, stacklevel=2)
-    return _with_modes(model, shaped)
-
-
-def alignment_decides(model: StatModel, rigid_modes: str, finds_pose: bool) -> bool:
-    """Whether ``auto`` leaves the modes' rigid motion to what the fit's alignment finds
-    (:data:`OFF_ITS_PLACE`): a model whose modes have some rigid motion, at most
-    :data:`PLACE_DECIDES` of their variance."""
-    return check_rigid_modes(rigid_modes) == "auto" and finds_pose and 0.0 < rigid_motion_share(model) <= PLACE_DECIDES
+                  "the fit uses its modes without it (--rigid-modes keep: as built)", StatfitWarning, stacklevel=3)
+    return _with_modes(model, shaped), False
 
 
 def rigid_motion_distance(model: StatModel, rotation: np.ndarray, shift: np.ndarray) -> float:
@@ -198,10 +198,7 @@ def rigid_motion_distance(model: StatModel, rotation: np.ndarray, shift: np.ndar
 
     centred = model.template - model.template.mean(axis=0)
     radius = float(np.sqrt((centred**2).sum(axis=1).mean()))
-    n = len(centred)
-    fields = ([np.broadcast_to(radius * axis, (n, 3)) for axis in np.eye(3)]
-              + [np.cross(axis, centred) for axis in np.eye(3)])
-    generators = np.stack([field.reshape(-1) for field in fields], axis=1)    # (3N, 6): a radius, a radian
+    generators = _rigid_fields(model.template) * [radius, radius, radius, 1.0, 1.0, 1.0]   # a radius, a radian
     motions = np.linalg.solve(generators.T @ generators, generators.T @ (model.basis * model.std))   # (6, K)
     covariance = motions @ motions.T
     covariance += 1e-9 * max(float(np.trace(covariance)), np.finfo(float).tiny) * np.eye(6)
@@ -233,8 +230,14 @@ def rigid_motion_basis(template: np.ndarray) -> np.ndarray:
     """(3N, 6) orthonormal: the small rigid motions of ``template`` (N, 3) as flattened vertex
     displacements; its first three columns span the translations, the last three the rotations
     about the centroid less their translation part."""
+    return np.linalg.qr(_rigid_fields(template))[0]
+
+
+def _rigid_fields(template: np.ndarray) -> np.ndarray:
+    """(3N, 6): the displacements of ``template`` (N, 3) by a unit translation along x, y, z and a
+    small rotation of one radian about x, y, z through its centroid."""
     n = len(template)
     centred = template - template.mean(axis=0)
     axes = np.eye(3)
     fields = [np.broadcast_to(axis, (n, 3)) for axis in axes] + [np.cross(axis, centred) for axis in axes]
-    return np.linalg.qr(np.stack([field.reshape(-1) for field in fields], axis=1))[0]
+    return np.stack([field.reshape(-1) for field in fields], axis=1)

@@ -30,7 +30,7 @@ from statfit.structures.frame import Frame, surface_vertices
 from statfit.structures.normal_map import NormalMap
 from statfit.core.methods import resolve
 from statfit.core.settings import FitSpace, Settings
-from statfit.model.cut import (OFF_ITS_PLACE, alignment_decides, fitting_model, rigid_motion_distance,
+from statfit.model.cut import (OFF_ITS_PLACE, fitting_model_and_rule, rigid_motion_distance,
                                without_rigid_motion)
 from statfit.model.statmodel import StatModel, region_triangles
 from statfit.objectives.normals import NormalMapObjective
@@ -157,8 +157,7 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
     what they do and ``align`` finds the pose, or where the alignment moved the model off the place
     its modes give its people, :func:`posed_view`).
     """
-    decides = alignment_decides(model, rigid_modes, finds_pose=align != "none")
-    model = fitting_model(model, rigid_modes, finds_pose=align != "none")
+    model, decides = fitting_model_and_rule(model, rigid_modes, finds_pose=align != "none")
     stages = checked_stages(model, align, silhouette, silhouette_weight, stages, method, preset, region, overrides)
     torch_device = resolve_device(device, "render")
     threads = choose_threads(model.basis.size + RENDER_FLOATS_PER_PIXEL * normal_map.mask.size, threads)
@@ -271,7 +270,7 @@ class PosedView:
 
 def posed_view(model: StatModel, decides: bool, normal_map: NormalMap, camera: Camera, device: torch.device,
                dtype: torch.dtype, **options: Any) -> PosedView:
-    """:meth:`PosedView.of`; where ``decides`` (:func:`statfit.model.cut.alignment_decides`) and its
+    """:meth:`PosedView.of`; where ``decides`` (:func:`statfit.model.cut.fitting_model_and_rule`) and its
     alignment moved the model more than OFF_ITS_PLACE standard deviations of its modes' rigid motion,
     made again with the model without that motion, its alignment starting from the pose found (a
     StatfitWarning says so): the person is not where the model places its people, so that motion

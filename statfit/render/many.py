@@ -25,7 +25,7 @@ from statfit.core.stages import PipelineResult
 from statfit.core.threads import choose_threads, intra_op_threads
 from statfit.core.together import FitOutcome, Member, fits_in_memory, run_stages_together
 from statfit.errors import StatfitError
-from statfit.model.cut import alignment_decides, fitting_model
+from statfit.model.cut import fitting_model_and_rule
 from statfit.model.statmodel import StatModel
 from statfit.objectives.normals import NormalMapObjective
 from statfit.objectives.weights import SILHOUETTE_WEIGHT
@@ -73,8 +73,7 @@ def reconstruct_many(model: StatModel, normal_maps: Sequence[NormalMap], cameras
     raises StatfitError (it would fail every fit)."""
     if len(cameras) != len(normal_maps):
         raise StatfitError(f"{len(normal_maps)} normal maps but {len(cameras)} cameras")
-    decides = alignment_decides(model, rigid_modes, finds_pose=align != "none")
-    model = fitting_model(model, rigid_modes, finds_pose=align != "none")
+    model, decides = fitting_model_and_rule(model, rigid_modes, finds_pose=align != "none")
     stages = checked_stages(model, align, silhouette, silhouette_weight, stages, method, preset, region, overrides)
     torch_device = resolve_device(device, "render")
     largest = max((each.mask.size for each in normal_maps), default=0)
