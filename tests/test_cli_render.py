@@ -52,6 +52,16 @@ def test_synth_render_eval(normal_files, tmp_path, capsys):
     assert report["observed"]["count"] + report["unobserved"]["count"] == len(mesh.vertices)
 
 
+def test_the_same_map_gives_the_same_mesh_twice(normal_files, tmp_path, capsys):
+    """The default fit, twice in one process, on the suite's device: the same bytes (CUDA's
+    reductions are made deterministic, statfit.core.device.same_seed_same_bytes)."""
+    exr, camera, _ = normal_files
+    for name in ("a.ply", "b.ply"):
+        code, _, err = run(["render", str(exr), "--camera", str(camera), "--out", str(tmp_path / name), *FAST], capsys)
+        assert code == 0, err
+    assert (tmp_path / "a.ply").read_bytes() == (tmp_path / "b.ply").read_bytes()
+
+
 def test_camera_from_the_exr_header_and_the_json_agree(normal_files, tmp_path, capsys):
     exr, camera, _ = normal_files
     in_header, in_json = read_normal_map(exr).camera, read_camera(camera)

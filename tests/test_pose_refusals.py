@@ -37,7 +37,9 @@ def test_a_cluttered_person_far_outside_the_model_is_fitted_with_a_warning_not_r
 def test_a_plane_the_fit_never_bends_to_is_refused(embedded_model):
     """A plane the polish finds no point to fit on (fewer than 10 kept): its coefficients stay 0, which
     passed the check as a perfect person before §40; the fit lies near none of the plane's points.
-    On one torch thread (conftest sets each test's anew): here the float sums decide the search's path."""
+    On one torch thread (conftest sets each test's anew): here the float sums decide the search's path,
+    and on another host's (the H200 machine's, session 43) the search ends where its coefficients are
+    far, and the shape's refusal says so instead; the §40 rule itself is the check's row below."""
     torch.set_num_threads(1)
     radius = float(np.ptp(embedded_model.template, axis=0).max() / 2)
     rng = np.random.default_rng(4)
@@ -46,7 +48,7 @@ def test_a_plane_the_fit_never_bends_to_is_refused(embedded_model):
     plane = trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(box.vertices, box.faces, radius / 20))
     plane.apply_transform(trimesh.transformations.random_rotation_matrix(rng.random(3)))
     plane.apply_scale(1000.0)
-    with pytest.raises(StatfitError, match="does not look like the model anywhere"):
+    with pytest.raises(StatfitError, match="does not look like the model"):
         estimate_pose(embedded_model, Scan.from_mesh(plane.vertices, plane.faces), threads=1)
 
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import threading
 
 import torch
 
@@ -37,7 +38,24 @@ def resolve_device(device: str | torch.device | None = None, job: str | None = N
         raise StatfitError("--device cuda was asked for but no CUDA device is available")
     if device.startswith("cuda"):
         same_seed_same_bytes()
+        load_cuda_linear_algebra(torch.device(device))
     return torch.device(device)
+
+
+_linear_algebra = threading.Lock()
+_linear_algebra_loaded = False
+
+
+def load_cuda_linear_algebra(device: torch.device) -> None:
+    """Load torch's CUDA linear-algebra library now, once a process, on this thread. torch loads it at
+    the first CUDA factorisation or solve, and two threads making that first call at once fail
+    ("lazy wrapper should be called at most once"): on an H200 (session 43, torch 2.11) fits stepped
+    together in ``batch register``, whose host work runs on threads, failed so."""
+    global _linear_algebra_loaded
+    with _linear_algebra:
+        if not _linear_algebra_loaded:
+            torch.linalg.cholesky_ex(torch.ones(1, 1, device=device))
+            _linear_algebra_loaded = True
 
 
 def same_seed_same_bytes() -> None:
