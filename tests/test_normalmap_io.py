@@ -273,8 +273,14 @@ def test_render_fits_an_encoded_exr_as_its_unit_normals_and_says_so(tmp_path, ca
         assert code == 0, err
         fits.append((read_mesh(fit)[0], err))
     assert "decode as (n + 1) / 2" in fits[1][1] and "decode" not in fits[0][1]
+    decoded = read_normal_map(tmp_path / "encoded.exr")
+    np.testing.assert_array_equal(decoded.mask, exact.mask)
+    assert np.abs(decoded.normals - exact.normals)[exact.mask].max() < 1e-6
+    # The fits agree within the fit's own floor: normals moved by noise of 1e-7 (1e-6) move this fit
+    # 0.11% (0.57%) of the radius on a CPU, and on an H200 the decoding's 1-ulp differences moved it
+    # 0.45% (session 43); fitted undecoded, the encoded values move it 78%.
     radius = np.sqrt(((fits[0][0] - fits[0][0].mean(axis=0)) ** 2).sum(axis=1).mean())
-    assert np.linalg.norm(fits[1][0] - fits[0][0], axis=1).mean() < 1e-3 * radius
+    assert np.linalg.norm(fits[1][0] - fits[0][0], axis=1).mean() < 0.02 * radius
 
 
 def test_a_renders_normal_pass_is_read_as_blender_names_it(tmp_path, normal_map):
