@@ -14,12 +14,13 @@ for a move drawn from the modes' own spread; chosen from the statistics, not fro
 Side by side in one run, each case with `--rigid-modes keep` (as built) and `auto` (the rule):
 §18's protocol (studies/cross_family_render.py, 256², every method) with ICT's head and its face
 mask on the people of ICT, the mask and MakeHuman, 2 each, misplaced by MISPLACED (the fit must find
-the pose) and placed as §18 places them (the default). §5's four in-family cases at 512² are checked
-for what the rule decides (its distance; the fit is unchanged where it does not fire). The misplaced
+the pose) and placed as §18 places them (every method since session 43). §5's four in-family cases
+at 512² are checked for what the rule decides (its distance; the fit is unchanged where it does not
+fire). The misplaced
 `keep` rows are the same bits as studies/cross_family_render.py's misplaced rows (49 compared); the
 rest of them were taken from there (``copied``).
 
-    python studies/rigid_free_moved.py            # ~60 min on 2 cores
+    python studies/rigid_free_moved.py            # ~90 min on 2 cores
     python studies/rigid_free_moved.py --report
 """
 from __future__ import annotations
@@ -83,8 +84,7 @@ def runs() -> list[tuple]:
     build_all(list(PEOPLE), len(SEEDS))
     return ([("in-family", c.name, "ict", 0, "default", "auto") for c in CASES]
             + [(kind, p, m, s, method, rule) for kind in ("misplaced", "placed")
-               for method in (METHODS if kind == "misplaced" else METHODS[:1]) for m in MODELS for p in PEOPLE
-               for s in SEEDS for rule in RULES])
+               for method in METHODS for m in MODELS for p in PEOPLE for s in SEEDS for rule in RULES])
 
 
 def report(rows: list[dict]) -> str:

@@ -42,7 +42,7 @@ def resolve_device(device: str | torch.device | None = None, job: str | None = N
     return torch.device(device)
 
 
-_linear_algebra = threading.Lock()
+_linear_algebra_lock = threading.Lock()
 _linear_algebra_loaded = False
 
 
@@ -52,7 +52,7 @@ def load_cuda_linear_algebra(device: torch.device) -> None:
     ("lazy wrapper should be called at most once"): on an H200 (session 43, torch 2.11) fits stepped
     together in ``batch register``, whose host work runs on threads, failed so."""
     global _linear_algebra_loaded
-    with _linear_algebra:
+    with _linear_algebra_lock:
         if not _linear_algebra_loaded:
             torch.linalg.cholesky_ex(torch.ones(1, 1, device=device))
             _linear_algebra_loaded = True
