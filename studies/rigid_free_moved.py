@@ -16,11 +16,10 @@ Side by side in one run, each case with `--rigid-modes keep` (as built) and `aut
 mask on the people of ICT, the mask and MakeHuman, 2 each, misplaced by MISPLACED (the fit must find
 the pose) and placed as §18 places them (every method since session 43). §5's four in-family cases
 at 512² are checked for what the rule decides (its distance; the fit is unchanged where it does not
-fire). The misplaced
-`keep` rows are the same bits as studies/cross_family_render.py's misplaced rows (49 compared); the
-rest of them were taken from there (``copied``).
+fire). The misplaced `keep` rows are the same bits as studies/cross_family_render.py's misplaced
+rows (49 compared); the rest of them were taken from there (``copied``).
 
-    python studies/rigid_free_moved.py            # ~90 min on 2 cores
+    python studies/rigid_free_moved.py            # ~2 h on 2 cores (244 fits)
     python studies/rigid_free_moved.py --report
 """
 from __future__ import annotations
