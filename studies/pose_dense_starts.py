@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from pose_screen_spread import CASES, people_of, runs, shipped_rows, within_share  # noqa: E402
+from pose_screen_spread import by_case, runs, within_share  # noqa: E402
 from study_runs import study_main  # noqa: E402
 
 RESULTS = ROOT / "studies" / "results" / "pose_dense_starts.json"
@@ -49,13 +49,10 @@ def fit_case(family: str, sampled: bool, seed: int) -> dict:
 def report(rows: list[dict]) -> str:
     lines = ["| people | model | shipped: 60 starts | 120 starts | seconds a fit, median: 60 / 120 |",
              "|---|---|---|---|---|"]
-    for family, sampled in CASES:
-        mine = [r for r in rows if r["family"] == family and r["sampled"] == sampled]
-        if mine:
-            before = shipped_rows(family, sampled)
-            seconds = [float(np.median([r["align_s"] for r in part if "align_s" in r])) for part in (before, mine)]
-            lines.append(f"| {people_of(family, sampled)} | {family} | {within_share(before)} | {within_share(mine)} | "
-                         f"{seconds[0]:.2f} / {seconds[1]:.2f} |")
+    for people, family, before, mine in by_case(rows):
+        seconds = [float(np.median([r["align_s"] for r in part if "align_s" in r])) for part in (before, mine)]
+        lines.append(f"| {people} | {family} | {within_share(before)} | {within_share(mine)} | "
+                     f"{seconds[0]:.2f} / {seconds[1]:.2f} |")
     return "\n".join(lines)
 
 

@@ -78,17 +78,22 @@ def shipped_rows(family: str, sampled: bool) -> list[dict]:
     return (stored.get("rows") or stored["data"]["rows"])[family + (" samples" if sampled else "")]
 
 
-def people_of(family: str, sampled: bool) -> str:
-    return "its own samples" if sampled else ("held-out people" if family == "makehuman-face" else "its people")
+def by_case(rows: list[dict]) -> list[tuple[str, str, list[dict], list[dict]]]:
+    """Per case measured in ``rows``: who the people are, the model, the shipped rows and ``rows``'."""
+    cases = []
+    for family, sampled in CASES:
+        mine = [r for r in rows if r["family"] == family and r["sampled"] == sampled]
+        if mine:
+            people = "its own samples" if sampled else ("held-out people" if family == "makehuman-face" else
+                                                        "its people")
+            cases.append((people, family, shipped_rows(family, sampled), mine))
+    return cases
 
 
 def report(rows: list[dict]) -> str:
     lines = ["| people | model | screen tolerance | shipped | spread-scaled |", "|---|---|---|---|---|"]
-    for family, sampled in CASES:
-        mine = [r for r in rows if r["family"] == family and r["sampled"] == sampled]
-        if mine:
-            lines.append(f"| {people_of(family, sampled)} | {family} | ×{mine[0]['factor']:.2f} | "
-                         f"{within_share(shipped_rows(family, sampled))} | {within_share(mine)} |")
+    lines += [f"| {people} | {family} | ×{mine[0]['factor']:.2f} | {within_share(before)} | {within_share(mine)} |"
+              for people, family, before, mine in by_case(rows)]
     return "\n".join(lines)
 
 
