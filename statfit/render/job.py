@@ -30,8 +30,7 @@ from statfit.structures.frame import Frame, surface_vertices
 from statfit.structures.normal_map import NormalMap
 from statfit.core.methods import resolve
 from statfit.core.settings import FitSpace, Settings
-from statfit.model.cut import (OFF_ITS_PLACE, fitting_model_and_rule, rigid_motion_distance,
-                               without_rigid_motion)
+from statfit.model.cut import OFF_ITS_PLACE, PlaceRule, fitting_model_and_rule, rigid_motion_distance
 from statfit.model.statmodel import StatModel, region_triangles
 from statfit.objectives.normals import NormalMapObjective
 from statfit.objectives.weights import SILHOUETTE_WEIGHT
@@ -157,7 +156,7 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
     what they do and ``align`` finds the pose, or where the alignment moved the model off the place
     its modes give its people, :func:`posed_view`).
     """
-    model, decides = fitting_model_and_rule(model, rigid_modes, finds_pose=align != "none")
+    model, place_rule = fitting_model_and_rule(model, rigid_modes, finds_pose=align != "none")
     stages = checked_stages(model, align, silhouette, silhouette_weight, stages, method, preset, region, overrides)
     torch_device = resolve_device(device, "render")
     threads = choose_threads(model.basis.size + RENDER_FLOATS_PER_PIXEL * normal_map.mask.size, threads)
@@ -165,7 +164,7 @@ def reconstruct(model: StatModel, normal_map: NormalMap, camera: Camera, method:
         torch.manual_seed(seed)
         started = time.perf_counter()
         timer = timer or StageTimer.for_device(torch_device)
-        view = posed_view(model, decides, normal_map, camera, torch_device, dtype, normal_space=normal_space,
+        view = posed_view(model, place_rule, normal_map, camera, torch_device, dtype, normal_space=normal_space,
                           normal_convention=normal_convention, align=align, init=init,
                           silhouette_weight=silhouette_weight, silhouette=silhouette, region=region, timer=timer,
                           **visibility_options(preset, torch_device))
@@ -268,20 +267,19 @@ class PosedView:
                    result.loss, seconds, dict(timer.seconds), result.iterations, threads=threads)
 
 
-def posed_view(model: StatModel, decides: bool, normal_map: NormalMap, camera: Camera, device: torch.device,
-               dtype: torch.dtype, **options: Any) -> PosedView:
-    """:meth:`PosedView.of`; where ``decides`` (:func:`statfit.model.cut.fitting_model_and_rule`) and its
-    alignment moved the model more than OFF_ITS_PLACE standard deviations of its modes' rigid motion,
-    made again with the model without that motion, its alignment starting from the pose found (a
-    StatfitWarning says so): the person is not where the model places its people, so that motion
-    would only trade with the pose (docs/studies.md §46)."""
+def posed_view(model: StatModel, place_rule: PlaceRule | None, normal_map: NormalMap, camera: Camera,
+               device: torch.device, dtype: torch.dtype, **options: Any) -> PosedView:
+    """:meth:`PosedView.of`; where there is a ``place_rule`` (:func:`statfit.model.cut.fitting_model_and_rule`)
+    and the alignment moved the model more than OFF_ITS_PLACE standard deviations of its modes' rigid
+    motion, made again with the rule's model without that motion, its alignment starting from the
+    pose found (a StatfitWarning says so): the person is not where the model places its people, so
+    that motion would only trade with the pose (docs/studies.md §46)."""
     view = PosedView.of(model, normal_map, camera, device, dtype, **options)
-    if decides and (distance := view.moved_by(model)) > OFF_ITS_PLACE:
+    if place_rule is not None and (distance := view.moved_by(model)) > OFF_ITS_PLACE:
         warnings.warn(f"the alignment moved the model {distance:.1f} standard deviations of its modes' rigid motion "
                       "off where they place its people: the fit uses its modes without their rigid motion "
                       "(--rigid-modes keep: as built)", StatfitWarning, stacklevel=3)
-        view = PosedView.of(without_rigid_motion(model), normal_map, camera, device, dtype, pose_from=view.pose,
-                            **options)
+        view = PosedView.of(place_rule.rigid_free, normal_map, camera, device, dtype, pose_from=view.pose, **options)
         view.rigid_free = True
     return view
 

@@ -73,7 +73,7 @@ def reconstruct_many(model: StatModel, normal_maps: Sequence[NormalMap], cameras
     raises StatfitError (it would fail every fit)."""
     if len(cameras) != len(normal_maps):
         raise StatfitError(f"{len(normal_maps)} normal maps but {len(cameras)} cameras")
-    model, decides = fitting_model_and_rule(model, rigid_modes, finds_pose=align != "none")
+    model, place_rule = fitting_model_and_rule(model, rigid_modes, finds_pose=align != "none")
     stages = checked_stages(model, align, silhouette, silhouette_weight, stages, method, preset, region, overrides)
     torch_device = resolve_device(device, "render")
     largest = max((each.mask.size for each in normal_maps), default=0)
@@ -85,7 +85,7 @@ def reconstruct_many(model: StatModel, normal_maps: Sequence[NormalMap], cameras
     with intra_op_threads(threads):
         torch.manual_seed(seed)
         for member, normal_map, camera in zip(members, normal_maps, cameras):
-            member.view = member.alone(posed_view, model, decides, normal_map, camera, torch_device, dtype,
+            member.view = member.alone(posed_view, model, place_rule, normal_map, camera, torch_device, dtype,
                                        **options, timer=member.timer)
             if member.view is not None:
                 member.space, member.objective, member.x = member.view.space, member.view.objective, member.view.start
