@@ -95,12 +95,15 @@ def shape_scan(model_name: str, kind: str, seed: int):
 
 def recording(checked, into: dict):
     """``check_plausible`` (``checked``) that keeps the facts it saw and its decision (ok / warn /
-    refuse) in ``into`` instead of raising, so the pose search runs to its end."""
+    refuse) in ``into`` instead of raising, so the pose search runs to its end. The first search's
+    refusal is raised all the same: it is what sends the search to its second grid (step 7,
+    docs/studies.md §44), whose choice is the last word kept."""
     import numpy as np
 
     from statfit.errors import StatfitError
 
     def recorded(matched, explained, coefficients, tolerance, has_landmarks=True, **facts):
+        first = "decision" not in into
         into.update(matched=matched, explained=explained, rms=float(np.sqrt(np.mean(coefficients**2))),
                     largest=float(np.abs(coefficients).max()), **facts)
         try:
@@ -108,6 +111,8 @@ def recording(checked, into: dict):
                                                  **facts) else "ok"
         except StatfitError:
             into["decision"] = "refuse"
+            if first:
+                raise
 
     return recorded
 

@@ -1,5 +1,6 @@
-"""Step 2 of the pose search: the starting poses, one per rotation of the icosahedral group, and
-the poses as arrays."""
+"""Step 2 of the pose search: the starting poses, one per rotation of the icosahedral group (and,
+where the first search leaves doubt, of the same group turned between its rotations), and the poses
+as arrays."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -10,6 +11,10 @@ from scipy.spatial.transform import Rotation
 from statfit.geometry.align import Similarity
 
 HYPOTHESES = Rotation.create_group("I").as_matrix()   # (60, 3, 3)
+# The second grid: the group turned by 18° (half the largest gap's reach) about an axis none of its
+# rotations shares, so each of its starts lies between the first's (docs/studies.md §44).
+SECOND_HYPOTHESES = (Rotation.create_group("I")
+                     * Rotation.from_rotvec(np.radians(18.0) * np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0))).as_matrix()
 DISTINCT_DEGREES = 30.0
 VISIBLE_COSINE = 0.3       # a vertex faces the scanner when its normal is within ~73° of the view
 
@@ -40,16 +45,17 @@ class Poses:
         return Similarity(float(self.scale[index]), self.rotation[index], self.translation[index])
 
 
-def hypothesis_starts(model_unit: np.ndarray, model_normals: np.ndarray, facing: np.ndarray) -> Poses:
-    """One pose per hypothesis rotation: the model's vertices (N, 3) facing ``facing`` (3,) (scan
-    frame) centred on the origin (the scan's centroid). A rotation that shows the scanner no vertex
+def hypothesis_starts(model_unit: np.ndarray, model_normals: np.ndarray, facing: np.ndarray,
+                      rotations: np.ndarray = HYPOTHESES) -> Poses:
+    """One pose per rotation of ``rotations`` (H, 3, 3): the model's vertices (N, 3) facing
+    ``facing`` (3,) (scan frame) centred on the origin (the scan's centroid). A rotation that shows the scanner no vertex
     (a face mask turned away: it has no back) places the whole template there instead; such a pose
     fits the scan badly and is screened out by its score."""
-    translation = np.empty((len(HYPOTHESES), 3))
-    for h, rotation in enumerate(HYPOTHESES):       # 60 rotations, each a vectorised pass over the vertices
+    translation = np.empty((len(rotations), 3))
+    for h, rotation in enumerate(rotations):       # 60 rotations, each a vectorised pass over the vertices
         visible = model_normals @ (rotation.T @ facing) > VISIBLE_COSINE
         translation[h] = -rotation @ (model_unit[visible] if visible.any() else model_unit).mean(axis=0)
-    return Poses(np.ones(len(HYPOTHESES)), HYPOTHESES.copy(), translation)
+    return Poses(np.ones(len(rotations)), rotations.copy(), translation)
 
 
 def distinct_poses(poses: Poses, order: np.ndarray, count: int) -> list[int]:

@@ -43,6 +43,11 @@ back to front, turned by 90°). So:
    AMBIGUITY of the best marks the result ambiguous; too few matched points, or a fit that needs
    implausible coefficients (a sphere, a plane), refuse the scan. A scan that already lies on
    the model, in its units, scoring within KEEP_FRAME of the best pose, is left where it is.
+7. **A second look.** Where the pose found leaves doubt (the scan would be refused, the pose is
+   ambiguous, or its fit needs more than DOUBTFUL_RMS standard deviations on average), steps 2–5
+   run again from a second grid, the group turned between its rotations, and step 6 chooses among
+   both grids' candidates: a model whose mean stands poorly for its people has narrow ICP basins
+   (docs/studies.md §44). A scan without doubt pays nothing for it.
 
 Everything runs in the model's unit frame (:class:`statfit.structures.frame.Frame`), so no threshold
 depends on units.
@@ -63,7 +68,8 @@ from statfit.geometry.align import Similarity
 from statfit.geometry.metrics import of_part_of_a_subject
 from statfit.model.statmodel import StatModel, face_triangles, scalp_triangles
 from statfit.registration.hair import hair_suspects
-from statfit.registration.pose.hypotheses import DISTINCT_DEGREES, angle_between, distinct_poses, hypothesis_starts
+from statfit.registration.pose.hypotheses import (DISTINCT_DEGREES, HYPOTHESES, SECOND_HYPOTHESES, angle_between,
+                                                   distinct_poses, hypothesis_starts)
 from statfit.registration.pose.icp import Matcher, trimmed_icp
 from statfit.registration.pose.refinement import ROUNDS, polish_pose, refine_with_first_modes, scaled_modes
 from statfit.registration.pose.scoring import (TOLERANCE, ScanCover, check_plausible, score_poses,
@@ -105,6 +111,9 @@ LEAD_SUBSAMPLE = 1500      # points of the two polishes that find the face (as g
 POLISHED_SWITCH = 1.25
 AMBIGUITY = 1.15           # runner-up score within this factor of the best: ambiguous
 FACING_MIN = -0.25         # cos between the model's face direction (+z) and the scan's mean normal
+# Step 7's doubt: a fit needing more than this on average (standard deviations; a model's own people need
+# about 1, fewer seen in part) sends the search to its second grid (docs/studies.md §44).
+DOUBTFUL_RMS = 1.0
 
 
 @dataclass(frozen=True)
@@ -138,91 +147,152 @@ class PoseEstimate:
 def estimate_pose(model: StatModel, scan: Scan, seed: int = 0, threads: int | None = None) -> PoseEstimate:
     """The similarity that puts ``model`` onto ``scan`` (any rotation, offset and power-of-ten
     units), found without landmarks; raises StatfitError when no pose matches enough of the scan.
-    ``threads``: the most threads it may run on (None: the cores this process may use)."""
-    frame = model.frame
-    centroid = scan.points.mean(axis=0)
-    radius = float(np.sqrt(((scan.points - centroid) ** 2).sum(axis=1).mean()))
-    if radius <= 0:
-        raise StatfitError("the scan's points all coincide")
-    units = float(10.0 ** np.round(np.log10(radius / frame.scale)))
-    points = (scan.points - centroid) / (units * frame.scale)
-    rng = np.random.default_rng(seed)
-    few = rng.choice(len(points), min(SUBSAMPLE, len(points)), replace=False)
-    many = rng.choice(len(points), min(REFINE_SUBSAMPLE, len(points)), replace=False)
+    ``threads``: the most threads it may run on (None: the cores this process may use).
 
-    mean = frame.to_unit(model.template)
-    matcher = Matcher(model.faces, mean)
-    facing = scan.normals.mean(axis=0)
-    facing = facing / max(np.linalg.norm(facing), 1e-12)
-    bounds = (1 / SCALE_RANGE, SCALE_RANGE)
-    # a model of part of a subject (a face mask) is scored from both sides: the scan's and its own
-    cover = ScanCover(kd_tree(points), facing) if of_part_of_a_subject(mean, model.faces) else None
-    starts = hypothesis_starts(mean, matcher.normals, facing)
-    poses = trimmed_icp(matcher, points[few], scan.normals[few], starts, SCREEN_ROUNDS, bounds)
-    screened = np.argsort(score_poses(matcher, points[few], scan.normals[few], poses, cover=cover)[0])[:SCREENED]
-    poses = trimmed_icp(matcher, points[few], scan.normals[few], poses.subset(screened), ROUNDS - SCREEN_ROUNDS, bounds)
-    score, _ = score_poses(matcher, points[few], scan.normals[few], poses, cover=cover)
-    facing_scanner = poses.rotation[:, :, 2] @ facing > FACING_MIN    # the model's +z (its face) towards the scanner
-    candidates = distinct_poses(poses, np.argsort(np.where(facing_scanner, score, np.inf)), REFINED)
+    Step 7: where the pose found leaves doubt — the scan would be refused, the pose is ambiguous, or
+    its fit needs coefficients beyond DOUBTFUL_RMS on average (more than the model's typical person) —
+    the search looks again from SECOND_HYPOTHESES (the icosahedral group turned halfway between its
+    rotations), and the choice is made again among both searches' candidates (docs/studies.md §44)."""
+    search = Search.of(model, scan, seed, threads)
+    found = search.candidates(HYPOTHESES)
+    try:
+        estimate, warning = search.choose(found)
+        doubtful = estimate.ambiguous or float(np.sqrt(np.mean(estimate.coefficients**2))) > DOUBTFUL_RMS
+    except StatfitError:
+        doubtful = True
+    if doubtful:
+        estimate, warning = search.choose(found + search.candidates(SECOND_HYPOTHESES))
+    if warning is not None:
+        warnings.warn(warning, StatfitWarning, stacklevel=2)
+    return estimate
 
-    basis_t = torch.as_tensor(np.ascontiguousarray(model.basis[:, :REFINE_MODES].T))
-    std = torch.as_tensor(model.std[:REFINE_MODES] / frame.scale)
-    every_mode = scaled_modes(model, frame)
-    polish = rng.choice(len(points), min(POLISH_SUBSAMPLE, len(points)), replace=False)
-    lead = polish[:LEAD_SUBSAMPLE]
 
-    def refine_and_polish(candidate: int) -> tuple[tuple[Similarity, float, float],
-                                                   tuple[Similarity, float, float, np.ndarray]]:
-        """A candidate refined, then polished at the units' scale with every mode (step 5's first
-        pass): the refinement's free scale can stretch a model over what it does not describe (a
-        face mask over a head scan's sides) and score better there than where it belongs. On a
-        matcher of its own (a copy: its shape is this candidate's to change)."""
-        own = copy.copy(matcher)
-        refined = refine_with_first_modes(own, mean, basis_t, std, points[many], scan.normals[many],
-                                          poses.pick(candidate), bounds)
-        return refined, polish_pose(own, mean, every_mode, points[lead], scan.normals[lead], refined[0])
+Refined = tuple[Similarity, float, float]                    # pose, score, matched share
+Polished = tuple[Similarity, float, float, np.ndarray]       # pose, score, matched share, coefficients (K,)
 
-    # The candidates are independent: each on a thread of its own where there are cores for it.
-    refined, leads = zip(*map_in_threads(refine_and_polish, candidates, task_threads(len(candidates), threads)))
-    best = int(np.argmin([score for _, score, _ in refined]))
-    polished = int(np.argmin([score for _, score, _, _ in leads]))
-    # The deciding scores: the refinement's, or the polish's where it overrules a near tie's keeper.
-    deciding = [score for _, score, _ in refined]
-    if leads[best][1] > POLISHED_SWITCH * leads[polished][1]:
-        best, deciding = polished, [score for _, score, _, _ in leads]
-    coarse_pose, coarse_score = refined[best][0], deciding[best]
-    coarse_matched = max(matched for _, _, matched in refined)      # "at best, in any pose": for the refusal
-    others = [deciding[index] for index, (pose, _, _) in enumerate(refined)
-              if index != best and angle_between(pose.rotation, coarse_pose.rotation) >= DISTINCT_DEGREES]
-    runner_up = min(others, default=1.0)
-    start, hair = coarse_pose, None
-    if (face := face_triangles(model, POSE_FACE_RADIUS)) is not None:   # step 5: head, face, all but hair
-        start, _, head_matched, _ = leads[best]
-        scalp = scalp_triangles(model) if head_matched < CLUTTER_MATCHED else None    # clutter: hair can be there
-        start, _, _, face_fit = polish_pose(matcher, mean, every_mode, points[lead], scan.normals[lead], start,
-                                        region=face if scalp is None else ~scalp, settle=True)
-        face_shape = mean + (every_mode @ torch.as_tensor(face_fit)).numpy()
-        hair = hair_suspects(matcher.query, torch.as_tensor(face_shape),
-                             torch.as_tensor(start.inverse_apply(points[polish])), torch.as_tensor(face),
-                             None if scalp is None else torch.as_tensor(scalp))
-        hair = None if hair is None else hair.numpy()    # None: not a head under hair, fit every point
-    transform, polished_score, matched, coefficients = polish_pose(matcher, mean, every_mode, points[polish],
-                                                               scan.normals[polish], start,
-                                                               used=None if hair is None else ~hair, settle=True)
-    in_place = Similarity(1.0, np.eye(3), (frame.center - centroid) / frame.scale)
-    if units == 1.0 and near(in_place, coarse_pose):   # only then can the scan as it lies compete
-        _, in_place_score, in_place_matched, in_place_coefficients = polish_pose(
-            matcher, mean, every_mode, points[polish], scan.normals[polish], in_place, move=False)
-        if in_place_score <= KEEP_FRAME * polished_score:
-            transform, matched, coefficients = in_place, in_place_matched, in_place_coefficients
-    fitted = transform.apply(mean + (every_mode @ torch.as_tensor(coefficients)).numpy())
-    supported = supported_share(model.faces, fitted, points[polish], facing, TOLERANCE)
-    if (far := check_plausible(coarse_matched, matched, coefficients, TOLERANCE * frame.scale,
-                               model.landmarks is not None, supported=supported,
-                               clear=runner_up > AMBIGUITY * coarse_score)) is not None:
-        warnings.warn(far, StatfitWarning, stacklevel=2)
-    return PoseEstimate(to_scan_frame(transform, frame, centroid, units), coarse_score, matched, runner_up, units,
-                        coefficients)
+
+@dataclass(frozen=True)
+class Search:
+    """What every candidate pose of one search shares: the model (its mean ``mean`` (N, 3), modes and
+    ``matcher``) and the scan (``points``, ``normals`` (M, 3)) in their unit frames, the scan's
+    ``centroid`` and ``units``, the subsamples each step uses (index arrays) and the scanner's
+    direction ``facing`` (3,)."""
+
+    model: StatModel
+    centroid: np.ndarray
+    units: float
+    points: np.ndarray
+    normals: np.ndarray
+    few: np.ndarray
+    many: np.ndarray
+    polish: np.ndarray
+    mean: np.ndarray
+    matcher: Matcher
+    facing: np.ndarray
+    cover: ScanCover | None
+    every_mode: torch.Tensor
+    threads: int | None
+
+    @classmethod
+    def of(cls, model: StatModel, scan: Scan, seed: int, threads: int | None) -> "Search":
+        frame = model.frame
+        centroid = scan.points.mean(axis=0)
+        radius = float(np.sqrt(((scan.points - centroid) ** 2).sum(axis=1).mean()))
+        if radius <= 0:
+            raise StatfitError("the scan's points all coincide")
+        units = float(10.0 ** np.round(np.log10(radius / frame.scale)))
+        points = (scan.points - centroid) / (units * frame.scale)
+        rng = np.random.default_rng(seed)
+        few = rng.choice(len(points), min(SUBSAMPLE, len(points)), replace=False)
+        many = rng.choice(len(points), min(REFINE_SUBSAMPLE, len(points)), replace=False)
+        polish = rng.choice(len(points), min(POLISH_SUBSAMPLE, len(points)), replace=False)
+        mean = frame.to_unit(model.template)
+        facing = scan.normals.mean(axis=0)
+        facing = facing / max(np.linalg.norm(facing), 1e-12)
+        # a model of part of a subject (a face mask) is scored from both sides: the scan's and its own
+        cover = ScanCover(kd_tree(points), facing) if of_part_of_a_subject(mean, model.faces) else None
+        return cls(model, centroid, units, points, scan.normals, few, many, polish, mean, Matcher(model.faces, mean),
+                   facing, cover, scaled_modes(model, frame), threads)
+
+    def candidates(self, rotations: np.ndarray) -> list[tuple[Refined, Polished]]:
+        """Steps 2–5's first pass from one start per rotation of ``rotations`` (H, 3, 3): the REFINED
+        best distinct poses, each refined with the first modes and polished with every mode."""
+        few_points, few_normals = self.points[self.few], self.normals[self.few]
+        bounds = (1 / SCALE_RANGE, SCALE_RANGE)
+        poses = trimmed_icp(self.matcher, few_points, few_normals,
+                            hypothesis_starts(self.mean, self.matcher.normals, self.facing, rotations),
+                            SCREEN_ROUNDS, bounds)
+        score = score_poses(self.matcher, few_points, few_normals, poses, cover=self.cover)[0]
+        poses = trimmed_icp(self.matcher, few_points, few_normals, poses.subset(np.argsort(score)[:SCREENED]),
+                            ROUNDS - SCREEN_ROUNDS, bounds)
+        score, _ = score_poses(self.matcher, few_points, few_normals, poses, cover=self.cover)
+        facing_scanner = poses.rotation[:, :, 2] @ self.facing > FACING_MIN    # the model's +z (its face) to the scanner
+        chosen = distinct_poses(poses, np.argsort(np.where(facing_scanner, score, np.inf)), REFINED)
+        frame = self.model.frame
+        basis_t = torch.as_tensor(np.ascontiguousarray(self.model.basis[:, :REFINE_MODES].T))
+        std = torch.as_tensor(self.model.std[:REFINE_MODES] / frame.scale)
+        lead = self.polish[:LEAD_SUBSAMPLE]
+
+        def refine_and_polish(candidate: int) -> tuple[Refined, Polished]:
+            """A candidate refined, then polished at the units' scale with every mode (step 5's first
+            pass): the refinement's free scale can stretch a model over what it does not describe (a
+            face mask over a head scan's sides) and score better there than where it belongs. On a
+            matcher of its own (a copy: its shape is this candidate's to change)."""
+            own = copy.copy(self.matcher)
+            refined = refine_with_first_modes(own, self.mean, basis_t, std, self.points[self.many],
+                                              self.normals[self.many], poses.pick(candidate), bounds)
+            return refined, polish_pose(own, self.mean, self.every_mode, self.points[lead], self.normals[lead],
+                                        refined[0])
+
+        # The candidates are independent: each on a thread of its own where there are cores for it.
+        return map_in_threads(refine_and_polish, chosen, task_threads(len(chosen), self.threads))
+
+    def choose(self, found: list[tuple[Refined, Polished]]) -> tuple[PoseEstimate, str | None]:
+        """The best of the candidates ``found`` (steps 5 and 6), polished on the face and without hair,
+        and the warning for a scan it explains only with far coefficients; raises StatfitError where
+        no pose is plausible. Leaves the matcher as it found it."""
+        model, frame, matcher, mean = self.model, self.model.frame, self.matcher, self.mean
+        points, normals, polish = self.points, self.normals, self.polish
+        lead = polish[:LEAD_SUBSAMPLE]
+        refined, leads = zip(*found)
+        best = int(np.argmin([score for _, score, _ in refined]))
+        polished = int(np.argmin([score for _, score, _, _ in leads]))
+        # The deciding scores: the refinement's, or the polish's where it overrules a near tie's keeper.
+        deciding = [score for _, score, _ in refined]
+        if leads[best][1] > POLISHED_SWITCH * leads[polished][1]:
+            best, deciding = polished, [score for _, score, _, _ in leads]
+        coarse_pose, coarse_score = refined[best][0], deciding[best]
+        coarse_matched = max(matched for _, _, matched in refined)      # "at best, in any pose": for the refusal
+        others = [deciding[index] for index, (pose, _, _) in enumerate(refined)
+                  if index != best and angle_between(pose.rotation, coarse_pose.rotation) >= DISTINCT_DEGREES]
+        runner_up = min(others, default=1.0)
+        start, hair = coarse_pose, None
+        if (face := face_triangles(model, POSE_FACE_RADIUS)) is not None:   # step 5: head, face, all but hair
+            start, _, head_matched, _ = leads[best]
+            scalp = scalp_triangles(model) if head_matched < CLUTTER_MATCHED else None    # clutter: hair can be there
+            start, _, _, face_fit = polish_pose(matcher, mean, self.every_mode, points[lead], normals[lead], start,
+                                                region=face if scalp is None else ~scalp, settle=True)
+            face_shape = mean + (self.every_mode @ torch.as_tensor(face_fit)).numpy()
+            hair = hair_suspects(matcher.query, torch.as_tensor(face_shape),
+                                 torch.as_tensor(start.inverse_apply(points[polish])), torch.as_tensor(face),
+                                 None if scalp is None else torch.as_tensor(scalp))
+            hair = None if hair is None else hair.numpy()    # None: not a head under hair, fit every point
+        transform, polished_score, matched, coefficients = polish_pose(
+            matcher, mean, self.every_mode, points[polish], normals[polish], start,
+            used=None if hair is None else ~hair, settle=True)
+        in_place = Similarity(1.0, np.eye(3), (frame.center - self.centroid) / frame.scale)
+        if self.units == 1.0 and near(in_place, coarse_pose):   # only then can the scan as it lies compete
+            _, in_place_score, in_place_matched, in_place_coefficients = polish_pose(
+                matcher, mean, self.every_mode, points[polish], normals[polish], in_place, move=False)
+            if in_place_score <= KEEP_FRAME * polished_score:
+                transform, matched, coefficients = in_place, in_place_matched, in_place_coefficients
+        fitted = transform.apply(mean + (self.every_mode @ torch.as_tensor(coefficients)).numpy())
+        supported = supported_share(model.faces, fitted, points[polish], self.facing, TOLERANCE)
+        warning = check_plausible(coarse_matched, matched, coefficients, TOLERANCE * frame.scale,
+                                  model.landmarks is not None, supported=supported,
+                                  clear=runner_up > AMBIGUITY * coarse_score)
+        return PoseEstimate(to_scan_frame(transform, frame, self.centroid, self.units), coarse_score, matched,
+                            runner_up, self.units, coefficients), warning
 
 
 def landmark_units(scale: float) -> float:
