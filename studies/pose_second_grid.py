@@ -52,13 +52,15 @@ def fit_case(family: str, sampled: bool, seed: int, variant: str) -> dict:
 
     def recording_choose(self, found):
         """The shipped choice, the first search's (its candidates alone) recorded."""
+        if first:                   # the second look's choice: not recorded
+            return choose(self, found)
         try:
             estimate, warning = choose(self, found)
         except StatfitError:
-            first.setdefault("first_refused", True)
+            first["first_refused"] = True
             raise
-        first.setdefault("first_rms", float(np.sqrt(np.mean(estimate.coefficients**2))))
-        first.setdefault("first_ambiguous", bool(estimate.ambiguous))
+        first.update(first_rms=float(np.sqrt(np.mean(estimate.coefficients**2))),
+                     first_ambiguous=bool(estimate.ambiguous))
         return estimate, warning
 
     search.Search.choose = recording_choose

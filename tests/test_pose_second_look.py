@@ -62,3 +62,27 @@ def test_the_second_grid_finds_the_pose_the_first_cannot(embedded_model, monkeyp
         angle = np.inf
     assert grids == [far.sum(), len(HYPOTHESES) if looks_again else far.sum()]     # the first grid left doubt
     assert (angle < 3.0) == looks_again, angle
+
+
+def test_a_plausible_first_pose_stays_where_the_second_looks_choice_is_refused(embedded_model, monkeypatch):
+    """The second look only adds: where its choice among both grids' candidates would be refused,
+    the first search's plausible pose stays, to the bit (a MakeHuman head scan of studies/
+    pose_refusals.py was refused so before this rule)."""
+    torch.set_num_threads(1)
+    _, scan = _scan(embedded_model, 3)
+    first = estimate_pose(embedded_model, scan, threads=1)
+    monkeypatch.setattr(search, "DOUBTFUL_RMS", -1.0)     # every pose leaves doubt: the second look runs
+    choose, choices = search.Search.choose, []
+
+    def refusing_the_second(self, found):
+        choices.append(len(found))
+        if len(choices) > 1:
+            raise StatfitError("the second look's choice, refused")
+        return choose(self, found)
+
+    monkeypatch.setattr(search.Search, "choose", refusing_the_second)
+    again = estimate_pose(embedded_model, scan, threads=1)
+    assert len(choices) == 2 and choices[1] > choices[0]
+    assert np.array_equal(again.transform.rotation, first.transform.rotation)
+    assert np.array_equal(again.transform.translation, first.transform.translation)
+    assert np.array_equal(again.coefficients, first.coefficients)

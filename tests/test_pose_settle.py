@@ -12,7 +12,8 @@ from statfit.geometry.align import Similarity, compose
 from statfit.registration.pose import refinement
 from statfit.registration.pose.icp import Matcher
 from statfit.registration.pose.refinement import POLISH_ITERATIONS, polish_pose, scaled_modes
-from statfit.registration.pose.search import estimate_pose, to_unit_frames
+from statfit.registration.pose.frames import to_unit_frames
+from statfit.registration.pose.search import estimate_pose
 from statfit.structures.scan import Scan
 from statfit.synth.scanner import realistic_scan
 

@@ -119,7 +119,7 @@ def test_synth_scan_realistic_writes_a_mesh_its_truth_and_landmarks(tmp_path):
 def test_landmarks_give_the_unit_inches_too(unit):
     """A landmark similarity's scale (a person's size within ±10%, and more) gives the unit: a power
     of ten, or one over 2.54 (inches)."""
-    from statfit.registration.pose.search import landmark_units
+    from statfit.registration.pose.frames import landmark_units
 
     for size in (0.8, 0.9, 1.0, 1.1, 1.25):
         assert landmark_units(unit * size) == pytest.approx(unit, rel=1e-12), (unit, size)

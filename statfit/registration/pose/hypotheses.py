@@ -11,8 +11,9 @@ from scipy.spatial.transform import Rotation
 from statfit.geometry.align import Similarity
 
 HYPOTHESES = Rotation.create_group("I").as_matrix()   # (60, 3, 3)
-# The second grid: the group turned by 18° (half the largest gap's reach) about an axis none of its
-# rotations shares, so each of its starts lies between the first's (docs/studies.md §44).
+# The second grid: the group turned by 18° (about half the ~38° within which every rotation lies of
+# one of the group's) about an axis none of its rotations shares, so that its starts lie between the
+# first's (docs/studies.md §44).
 SECOND_HYPOTHESES = (Rotation.create_group("I")
                      * Rotation.from_rotvec(np.radians(18.0) * np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0))).as_matrix()
 DISTINCT_DEGREES = 30.0
@@ -48,9 +49,9 @@ class Poses:
 def hypothesis_starts(model_unit: np.ndarray, model_normals: np.ndarray, facing: np.ndarray,
                       rotations: np.ndarray = HYPOTHESES) -> Poses:
     """One pose per rotation of ``rotations`` (H, 3, 3): the model's vertices (N, 3) facing
-    ``facing`` (3,) (scan frame) centred on the origin (the scan's centroid). A rotation that shows the scanner no vertex
-    (a face mask turned away: it has no back) places the whole template there instead; such a pose
-    fits the scan badly and is screened out by its score."""
+    ``facing`` (3,) (scan frame) centred on the origin (the scan's centroid). A rotation that shows
+    the scanner no vertex (a face mask turned away: it has no back) places the whole template there
+    instead; such a pose fits the scan badly and is screened out by its score."""
     translation = np.empty((len(rotations), 3))
     for h, rotation in enumerate(rotations):       # 60 rotations, each a vectorised pass over the vertices
         visible = model_normals @ (rotation.T @ facing) > VISIBLE_COSINE

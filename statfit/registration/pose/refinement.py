@@ -77,8 +77,9 @@ def polish_pose(matcher: Matcher, mean: np.ndarray, directions: torch.Tensor, po
         if iteration >= POLISH_ITERATIONS and moved_by <= SETTLED:
             break
         local = torch.as_tensor(pose.inverse_apply(fitted))
-        objective = ScanObjective(local, matcher.query, trim=0.05, normals=torch.as_tensor(fitted_normals @ pose.rotation),
-                                  clutter=True, region_faces=region_faces)
+        objective = ScanObjective(local, matcher.query, trim=0.05,
+                                  normals=torch.as_tensor(fitted_normals @ pose.rotation), clutter=True,
+                                  region_faces=region_faces)
         x = mean_t + directions @ coefficients
         objective.refresh(x)
         if objective.kept < 10:     # nothing left to say where to go (e.g. no point on the region): stay

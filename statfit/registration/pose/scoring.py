@@ -127,8 +127,8 @@ def check_plausible(matched: float, explained: float, coefficients: np.ndarray, 
     held_up = clear and rms <= FAR_RMS and largest <= FAR_COEFFICIENT and supported >= SUPPORTED
     if not (explains or held_up):
         raise StatfitError(f"the scan does not look like the model's shape: its best fit needs coefficients of "
-                           f"{rms:.1f} standard deviations on average and {largest:.1f} at most, where a scan of what the model "
-                           "describes needs about 1 (if it is one, place it with "
+                           f"{rms:.1f} standard deviations on average and {largest:.1f} at most, where a scan of what "
+                           "the model describes needs about 1 (if it is one, place it with "
                            + ("--landmarks)" if has_landmarks else
                               "--align similarity: this model has no landmarks)"))
     return (f"the scan lies far outside the model's people: its fit needs coefficients of {rms:.1f} standard "

@@ -68,18 +68,17 @@ from statfit.geometry.align import Similarity
 from statfit.geometry.metrics import of_part_of_a_subject
 from statfit.model.statmodel import StatModel, face_triangles, scalp_triangles
 from statfit.registration.hair import hair_suspects
+from statfit.registration.pose.frames import landmark_units, to_scan_frame, to_unit_frames
 from statfit.registration.pose.hypotheses import (DISTINCT_DEGREES, HYPOTHESES, SECOND_HYPOTHESES, angle_between,
                                                    distinct_poses, hypothesis_starts)
 from statfit.registration.pose.icp import Matcher, trimmed_icp
 from statfit.registration.pose.refinement import ROUNDS, polish_pose, refine_with_first_modes, scaled_modes
 from statfit.registration.pose.scoring import (TOLERANCE, ScanCover, check_plausible, score_poses,
                                                 supported_share)
-from statfit.structures.frame import Frame
 from statfit.structures.kdtree import kd_tree
 from statfit.structures.scan import Scan
 
 SCALE_RANGE = 1.35
-INCH = 2.54                # centimetres: a scan in inches lies this far off a power of ten from a metric model
 SUBSAMPLE = 300
 # Successive halving: after SCREEN_ROUNDS of ICP only the SCREENED best-scoring hypotheses go on to
 # the remaining rounds (the ICP of all 60 was a third of the alignment's time).
@@ -152,19 +151,32 @@ def estimate_pose(model: StatModel, scan: Scan, seed: int = 0, threads: int | No
     Step 7: where the pose found leaves doubt — the scan would be refused, the pose is ambiguous, or
     its fit needs coefficients beyond DOUBTFUL_RMS on average (more than the model's typical person) —
     the search looks again from SECOND_HYPOTHESES (the icosahedral group turned halfway between its
-    rotations), and the choice is made again among both searches' candidates (docs/studies.md §44)."""
+    rotations), and the choice is made again among both searches' candidates (docs/studies.md §44).
+    A pose the first search found plausible stays where the second look's choice would be refused."""
     search = Search.of(model, scan, seed, threads)
     found = search.candidates(HYPOTHESES)
     try:
-        estimate, warning = search.choose(found)
-        doubtful = estimate.ambiguous or float(np.sqrt(np.mean(estimate.coefficients**2))) > DOUBTFUL_RMS
+        first = search.choose(found)
     except StatfitError:
-        doubtful = True
-    if doubtful:
-        estimate, warning = search.choose(found + search.candidates(SECOND_HYPOTHESES))
+        first = None
+    if first is not None and not doubtful(first[0]):
+        estimate, warning = first
+    else:
+        try:
+            estimate, warning = search.choose(found + search.candidates(SECOND_HYPOTHESES))
+        except StatfitError:
+            if first is None:
+                raise
+            estimate, warning = first       # the second look's choice refused: the first's plausible pose stays
     if warning is not None:
         warnings.warn(warning, StatfitWarning, stacklevel=2)
     return estimate
+
+
+def doubtful(estimate: PoseEstimate) -> bool:
+    """Whether a plausible pose leaves doubt enough for step 7's second look: it is ambiguous, or its
+    fit needs more than DOUBTFUL_RMS standard deviations a mode on average."""
+    return estimate.ambiguous or float(np.sqrt(np.mean(estimate.coefficients**2))) > DOUBTFUL_RMS
 
 
 Refined = tuple[Similarity, float, float]                    # pose, score, matched share
@@ -226,7 +238,7 @@ class Search:
         poses = trimmed_icp(self.matcher, few_points, few_normals, poses.subset(np.argsort(score)[:SCREENED]),
                             ROUNDS - SCREEN_ROUNDS, bounds)
         score, _ = score_poses(self.matcher, few_points, few_normals, poses, cover=self.cover)
-        facing_scanner = poses.rotation[:, :, 2] @ self.facing > FACING_MIN    # the model's +z (its face) to the scanner
+        facing_scanner = poses.rotation[:, :, 2] @ self.facing > FACING_MIN    # the model's +z (its face) to it
         chosen = distinct_poses(poses, np.argsort(np.where(facing_scanner, score, np.inf)), REFINED)
         frame = self.model.frame
         basis_t = torch.as_tensor(np.ascontiguousarray(self.model.basis[:, :REFINE_MODES].T))
@@ -295,15 +307,6 @@ class Search:
                             runner_up, self.units, coefficients), warning
 
 
-def landmark_units(scale: float) -> float:
-    """The scan's unit relative to the model's, from the ``scale`` of a landmark similarity: the
-    power of ten or power of ten over INCH nearest it (landmarks place a person's size within
-    ±10%; neighbouring units lie ≥ 2.5 times apart)."""
-    power = float(10.0 ** np.round(np.log10(scale)))
-    inches = float(10.0 ** np.round(np.log10(scale * INCH))) / INCH
-    return power if abs(np.log(scale / power)) <= abs(np.log(scale / inches)) else inches
-
-
 def refine_pose(model: StatModel, scan: Scan, start: Similarity, seed: int = 0) -> PoseEstimate:
     """``start`` (model → scan, e.g. placed by landmarks) polished like :func:`estimate_pose`'s
     best pose: a rigid pose and every coefficient by Gauss–Newton on the scan, the scale snapped to
@@ -329,19 +332,3 @@ def near(pose: Similarity, other: Similarity) -> bool:
     """Whether two poses (unit frames) are within DISTINCT_DEGREES and NEAR_OFFSET of each other."""
     return (angle_between(pose.rotation, other.rotation) < DISTINCT_DEGREES
             and float(np.linalg.norm(pose.translation - other.translation)) < NEAR_OFFSET)
-
-
-def to_scan_frame(transform: Similarity, frame: Frame, centroid: np.ndarray, units: float) -> Similarity:
-    """A pose between unit frames (model: u = (x − centre)/scale; scan: q = (p − centroid)/(units·scale))
-    as the model → scan similarity, written out so that the scale is the unit's exactly (a
-    composition would round it)."""
-    return Similarity(units * transform.scale, transform.rotation,
-                      centroid + units * frame.scale * transform.translation
-                      - units * transform.scale * transform.rotation @ frame.center)
-
-
-def to_unit_frames(transform: Similarity, frame: Frame, centroid: np.ndarray, units: float) -> Similarity:
-    """The inverse of :func:`to_scan_frame`: a model → scan similarity as a pose between the unit frames."""
-    return Similarity(transform.scale / units, transform.rotation,
-                      (transform.scale * transform.rotation @ frame.center + transform.translation - centroid)
-                      / (units * frame.scale))
