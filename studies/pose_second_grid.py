@@ -12,8 +12,8 @@ benchmarks/real_scans.py's 50 cluttered ICT head scans (§8):
   second grid's row where the first was doubtful at that threshold, the shipped row elsewhere;
 - ``shipped``: the code as shipped (the threshold chosen from the first run), measured.
 
-Compared with the rows of the code before step 7 (benchmarks/results/mask_pose_cpu.json,
-benchmarks/results/real_scans_cpu.json: the same cases, the same code otherwise).
+Compared with the rows of the code before step 7 (studies/results/pose_before_second_look.json: benchmarks
+§14's and §8's rows at commit 94789f1; the same cases, the same code otherwise).
 
     python studies/pose_second_grid.py            # ~35 min on 2 cores
     python studies/pose_second_grid.py --report
@@ -30,12 +30,13 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from pose_dense_starts import REAL_SCANS, head_scan_case  # noqa: E402
+from pose_dense_starts import head_scan_case  # noqa: E402
 from pose_dense_starts import runs as case_runs  # noqa: E402
-from pose_screen_spread import CASES, shipped_rows  # noqa: E402
+from pose_screen_spread import CASES  # noqa: E402
 from study_runs import study_main  # noqa: E402
 
 RESULTS = ROOT / "studies" / "results" / "pose_second_grid.json"
+BEFORE = ROOT / "studies" / "results" / "pose_before_second_look.json"
 VARIANTS = ("always", "shipped")
 THRESHOLDS = (0.8, 1.0, 1.2, 1.5, np.inf)
 _SHIPPED: dict = {}        # the shipped choice and threshold (a worker runs many cases)
@@ -74,9 +75,10 @@ def runs() -> list[tuple]:
 
 
 def _before(family: str, sampled: bool) -> dict[int, dict]:
+    stored = json.loads(BEFORE.read_text())
     if family == "ict-head-scans":
-        return {r["seed"]: r for r in json.loads(REAL_SCANS.read_text())["pose"]}
-    return {r["seed"]: r for r in shipped_rows(family, sampled)}
+        return {r["seed"]: r for r in stored["real_scans_pose"]}
+    return {r["seed"]: r for r in stored["mask_pose"][family + (" samples" if sampled else "")]}
 
 
 def _within(row: dict, before: dict, family: str) -> bool:
