@@ -156,9 +156,13 @@ def run_case(model_name: str, subject: str, seed: int, clutter: float, points: i
     if subject == model_name and row["decision"] != "refuse":     # the model's topology: errors per vertex
         from statfit.registration.job import register
 
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            fitted = register(family_model(model_name), scan, threads=1).vertices
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                fitted = register(family_model(model_name), scan, threads=1).vertices
+        except StatfitError as refusal:     # register fits the jobs' model (§44's rule), whose search may refuse
+            row["register_refused"] = str(refusal)[:120]
+            return row
         row["vertex_mm"] = float(np.linalg.norm(fitted - made.truth, axis=1).mean())
     return row
 
