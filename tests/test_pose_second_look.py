@@ -66,8 +66,7 @@ def test_the_second_grid_finds_the_pose_the_first_cannot(embedded_model, monkeyp
 
 def test_a_plausible_first_pose_stays_where_the_second_looks_choice_is_refused(embedded_model, monkeypatch):
     """The second look only adds: where its choice among both grids' candidates would be refused,
-    the first search's plausible pose stays, to the bit (a MakeHuman head scan of studies/
-    pose_refusals.py was refused so before this rule)."""
+    the first search's plausible pose stays, to the bit."""
     torch.set_num_threads(1)
     _, scan = _scan(embedded_model, 3)
     first = estimate_pose(embedded_model, scan, threads=1)
