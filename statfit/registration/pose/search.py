@@ -111,7 +111,7 @@ POLISHED_SWITCH = 1.25
 AMBIGUITY = 1.15           # runner-up score within this factor of the best: ambiguous
 FACING_MIN = -0.25         # cos between the model's face direction (+z) and the scan's mean normal
 # Step 7's doubt: a fit needing more than this on average (standard deviations; a model's own people need
-# about 1, fewer seen in part) sends the search to its second grid (docs/studies.md §44).
+# about 1, and 0.6-0.9 from a one-sided scan) sends the search to its second grid (docs/studies.md §44).
 DOUBTFUL_RMS = 1.0
 
 
