@@ -15,7 +15,7 @@ benchmarks/real_scans.py's 50 cluttered ICT head scans (§8):
 Compared with the rows of the code before step 7 (studies/results/pose_before_second_look.json: benchmarks
 §14's and §8's rows at commit 94789f1; the same cases, the same code otherwise).
 
-    python studies/pose_second_grid.py            # ~35 min on 2 cores
+    python studies/pose_second_grid.py            # ~25 min on 2 cores
     python studies/pose_second_grid.py --report
 """
 from __future__ import annotations
