@@ -56,7 +56,7 @@ from __future__ import annotations
 
 import copy
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -204,6 +204,7 @@ class Search:
     cover: ScanCover | None
     every_mode: torch.Tensor
     threads: int | None
+    finished: dict[int, tuple] = field(default_factory=dict, compare=False, repr=False)   # finish's, by candidate
 
     @classmethod
     def of(cls, model: StatModel, scan: Scan, seed: int, threads: int | None) -> "Search":
@@ -263,9 +264,6 @@ class Search:
         """The best of the candidates ``found`` (steps 5 and 6), polished on the face and without hair,
         and the warning for a scan it explains only with far coefficients; raises StatfitError where
         no pose is plausible. Leaves the matcher as it found it."""
-        model, frame, matcher, mean = self.model, self.model.frame, self.matcher, self.mean
-        points, normals, polish = self.points, self.normals, self.polish
-        lead = polish[:LEAD_SUBSAMPLE]
         refined, leads = zip(*found)
         best = int(np.argmin([score for _, score, _ in refined]))
         polished = int(np.argmin([score for _, score, _, _ in leads]))
@@ -278,11 +276,30 @@ class Search:
         others = [deciding[index] for index, (pose, _, _) in enumerate(refined)
                   if index != best and angle_between(pose.rotation, coarse_pose.rotation) >= DISTINCT_DEGREES]
         runner_up = min(others, default=1.0)
-        start, hair = coarse_pose, None
+        # a second look that keeps the first search's best candidate finds it finished already
+        key = id(found[best])
+        if key not in self.finished:
+            self.finished[key] = self.finish(*found[best])
+        transform, matched, coefficients, supported = self.finished[key]
+        warning = check_plausible(coarse_matched, matched, coefficients, TOLERANCE * self.model.frame.scale,
+                                  self.model.landmarks is not None, supported=supported,
+                                  clear=runner_up > AMBIGUITY * coarse_score)
+        return PoseEstimate(to_scan_frame(transform, self.model.frame, self.centroid, self.units), coarse_score,
+                            matched, runner_up, self.units, coefficients), warning
+
+    def finish(self, refined: Refined, lead: Polished) -> tuple[Similarity, float, np.ndarray, float]:
+        """The chosen candidate's last polishes (step 5: on the face, then without hair) and whether the
+        scan as it lies does as well: its pose, matched share, coefficients (K,) and the share of its
+        fit's facing surface the scan supports."""
+        model, frame, matcher, mean = self.model, self.model.frame, self.matcher, self.mean
+        points, normals, polish = self.points, self.normals, self.polish
+        start, hair = refined[0], None
         if (face := face_triangles(model, POSE_FACE_RADIUS)) is not None:   # step 5: head, face, all but hair
-            start, _, head_matched, _ = leads[best]
+            start, _, head_matched, _ = lead
             scalp = scalp_triangles(model) if head_matched < CLUTTER_MATCHED else None    # clutter: hair can be there
-            start, _, _, face_fit = polish_pose(matcher, mean, self.every_mode, points[lead], normals[lead], start,
+            lead_points = polish[:LEAD_SUBSAMPLE]
+            start, _, _, face_fit = polish_pose(matcher, mean, self.every_mode, points[lead_points],
+                                                normals[lead_points], start,
                                                 region=face if scalp is None else ~scalp, settle=True)
             face_shape = mean + (self.every_mode @ torch.as_tensor(face_fit)).numpy()
             hair = hair_suspects(matcher.query, torch.as_tensor(face_shape),
@@ -293,18 +310,14 @@ class Search:
             matcher, mean, self.every_mode, points[polish], normals[polish], start,
             used=None if hair is None else ~hair, settle=True)
         in_place = Similarity(1.0, np.eye(3), (frame.center - self.centroid) / frame.scale)
-        if self.units == 1.0 and near(in_place, coarse_pose):   # only then can the scan as it lies compete
+        if self.units == 1.0 and near(in_place, refined[0]):   # only then can the scan as it lies compete
             _, in_place_score, in_place_matched, in_place_coefficients = polish_pose(
                 matcher, mean, self.every_mode, points[polish], normals[polish], in_place, move=False)
             if in_place_score <= KEEP_FRAME * polished_score:
                 transform, matched, coefficients = in_place, in_place_matched, in_place_coefficients
         fitted = transform.apply(mean + (self.every_mode @ torch.as_tensor(coefficients)).numpy())
-        supported = supported_share(model.faces, fitted, points[polish], self.facing, TOLERANCE)
-        warning = check_plausible(coarse_matched, matched, coefficients, TOLERANCE * frame.scale,
-                                  model.landmarks is not None, supported=supported,
-                                  clear=runner_up > AMBIGUITY * coarse_score)
-        return PoseEstimate(to_scan_frame(transform, frame, self.centroid, self.units), coarse_score, matched,
-                            runner_up, self.units, coefficients), warning
+        return transform, matched, coefficients, supported_share(model.faces, fitted, points[polish], self.facing,
+                                                                 TOLERANCE)
 
 
 def refine_pose(model: StatModel, scan: Scan, start: Similarity, seed: int = 0) -> PoseEstimate:
