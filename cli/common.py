@@ -119,8 +119,9 @@ RigidModesOption = typer.Option("auto", "--rigid-modes", help="The model's modes
                                  "the modes do, as in a head cut from a body model (`statfit model info` prints the "
                                  "share; docs/method.md), and in render, up to 50%, also where the alignment moved "
                                  "the model off the place its modes give its people (a photo not taken in the "
-                                 "model's frame), unless --align none without --landmarks. The mesh and --params "
-                                 "are the given model's either way.")
+                                 "model's frame), unless --align none without --landmarks. Fitting modes without "
+                                 "rigid motion, register's closed form moves the pose a little itself. The mesh and "
+                                 "--params are the given model's either way.")
 
 # Without a terminal, a progress line at most this often (seconds).
 PROGRESS_LINE_SECONDS = 5.0

@@ -12,7 +12,9 @@ correspondences before every iteration (ICP-style alternation). σ follows a con
 from strong to weak prior, so that the large modes settle before the small ones can explain what
 they should not (docs/method.md, "Gauss–Newton pca"). Where asked, the path's last levels are
 each tried as the end: the one whose prior predicts the scan's held-out edge best is kept
-(:func:`held_out_error`; docs/studies.md §32).
+(:func:`held_out_error`; docs/studies.md §32). A model whose modes hold no rigid motion cannot move
+the pose a fit was given; six small rigid motions among the coefficients
+(:meth:`statfit.core.settings.FitSpace.closed_form_modes`) let the closed form settle it (docs/studies.md §47).
 """
 from __future__ import annotations
 

@@ -12,6 +12,7 @@ import torch
 from statfit.errors import StatfitError
 from statfit.core.filters import beta_with_power
 from statfit.structures.frame import Frame
+from statfit.model.cut import rigid_motion_basis
 from statfit.model.statmodel import StatModel
 from statfit.core.solvers import SOLVERS
 
@@ -126,17 +127,20 @@ def check_int(name: str, value: int, low: int, high: int) -> None:
 @dataclass(frozen=True)
 class FitSpace:
     """The model in the fit frame, as tensors: mean (N, c), basis_t = Uᵀ (K, cN), std (K,); the
-    Laplacian comes from the mesh ``faces``, or is given ready (``laplacian_matrix``, e.g. an image grid's)."""
+    Laplacian comes from the mesh ``faces``, or is given ready (``laplacian_matrix``, e.g. an image grid's).
+    ``pose_std``: the closed-form stage's own small rigid motion, RMS vertex motion per standard deviation
+    (fit-frame units; :meth:`closed_form_modes`), 0 for none."""
 
     mean: torch.Tensor
     basis_t: torch.Tensor
     std: torch.Tensor
     faces: np.ndarray | None
     laplacian_matrix: sp.spmatrix | None = None
+    pose_std: float = 0.0
 
     @classmethod
     def of(cls, model: StatModel, frame: Frame | None = None, device: str | torch.device = "cpu",
-           dtype: torch.dtype = torch.float32) -> "FitSpace":
+           dtype: torch.dtype = torch.float32, pose_std: float = 0.0) -> "FitSpace":
         """``model``'s mean, basis and std-devs in ``frame`` (default: the template's unit frame,
         :class:`statfit.structures.frame.Frame`), as tensors on ``device``."""
         frame = frame or model.frame
@@ -145,7 +149,21 @@ class FitSpace:
             return torch.as_tensor(np.ascontiguousarray(array), dtype=dtype, device=device)
 
         return cls(as_tensor(frame.to_unit(model.template)), as_tensor(model.basis.T),
-                   as_tensor(model.std / frame.scale), model.faces)
+                   as_tensor(model.std / frame.scale), model.faces, pose_std=pose_std)
+
+    def closed_form_modes(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """What the closed-form stage fits: Uᵀ (K, 3N) and std (K,), and with ``pose_std`` > 0 six more
+        rows after them: the mean's small rigid motions (:func:`statfit.model.cut.rigid_motion_basis`:
+        shifts and turns about its centroid, orthonormal), each moving the vertices by ``pose_std`` RMS
+        per standard deviation: (K + 6, 3N), (K + 6,). A turn is a rotation to first order: by a degree,
+        the lengths grow by 0.015%."""
+        if self.pose_std <= 0:
+            return self.basis_t, self.std
+        rigid = rigid_motion_basis(self.mean.detach().cpu().double().numpy())
+        rigid_t = torch.as_tensor(rigid.T, dtype=self.basis_t.dtype, device=self.basis_t.device)
+        rigid_std = torch.full((6,), self.pose_std * math.sqrt(len(self.mean)), dtype=self.std.dtype,
+                               device=self.std.device)
+        return torch.cat([self.basis_t, rigid_t]), torch.cat([self.std, rigid_std])
 
     def shape(self, coefficients: np.ndarray | torch.Tensor) -> torch.Tensor:
         """The mean plus Σ c_k std_k U_k for ``coefficients`` (K,) in standard deviations: (N, c)."""

@@ -67,7 +67,8 @@ def run_stages(stages: tuple[Settings, ...], space: FitSpace, objective: Objecti
                 raise StatfitError("the Gauss–Newton pca stage needs a least-squares objective (scan registration); "
                                    "use the Adam pca stage here")
             with timer("gauss-newton"):
-                result = fit_coefficients(space.mean, space.basis_t, space.std, stage_objective, x, settings.iterations,
+                basis_t, std = space.closed_form_modes()
+                result = fit_coefficients(space.mean, basis_t, std, stage_objective, x, settings.iterations,
                                           settings.noise, settings.levels, settings.choose_levels, first_iteration=done,
                                           on_record=on_record,
                                           on_snapshot=on_snapshot)

@@ -85,7 +85,7 @@ def register_many(model: StatModel, scans: Sequence[np.ndarray | Scan], method: 
     members = [_Scan(i) for i in range(len(scans))]
     with intra_op_threads(plan.threads):
         torch.manual_seed(seed)
-        shared = model_tensors(model, plan.device, dtype)
+        shared = model_tensors(model, plan, dtype)
         # Each fit's host work (its pose search, set-up, closed-form stage and fallback test) runs side
         # by side with the others' where one fit would leave cores idle: the same fits as one after another.
         side_by_side = task_threads(len(members), plan.threads_asked)

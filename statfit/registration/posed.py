@@ -22,6 +22,7 @@ from statfit.errors import DivergenceError, StatfitError, StatfitWarning
 from statfit.geometry.align import Similarity
 from statfit.geometry.closest import ClosestPointQuery
 from statfit.geometry.metrics import inside_distance
+from statfit.model.cut import rigid_motion_share
 from statfit.model.params import project
 from statfit.model.statmodel import StatModel, face_triangles, region_triangles, scalp_triangles
 from statfit.objectives.landmarks import LandmarkObjective, WithLandmarks
@@ -36,6 +37,11 @@ from statfit.structures.scan import Scan, sample_size
 FAR_DISTANCE = 0.25
 # A fit whose vertices lie farther than this from the scan points (median, model radii) ran away.
 RUNAWAY = 10.0
+# A model whose modes hold less than NO_RIGID_MOTION of their variance in rigid motion (one fitted without
+# it) cannot move the pose a fit was given; its closed-form stage moves it by small rigid motions of
+# POSE_STD per standard deviation (RMS radii; docs/studies.md §47). ICT's head holds 21%, its mask 30%.
+NO_RIGID_MOTION = 0.01
+POSE_STD = 0.03
 
 
 @dataclass(frozen=True)
@@ -44,7 +50,8 @@ class FitPlan:
     term's weight (the fallback's too), the fallback (None: none), the data term's trim and refresh
     period, whether a fit starts from the pose search's shape (not the paper's preset), the device,
     the fit's intra-op threads and the threads the caller asked for (None: as the machine allows;
-    they cap the pose search's own)."""
+    they cap the pose search's own), and the closed form's own rigid motion (``pose_std``, RMS radii per
+    standard deviation; 0: none)."""
 
     stages: tuple[Settings, ...]
     weight: float
@@ -56,12 +63,16 @@ class FitPlan:
     device: torch.device
     threads: int
     threads_asked: int | None
+    pose_std: float
 
 
 def plan_fits(model: StatModel, method: str, preset: str, stages: tuple[Settings, ...] | None,
               overrides: dict[str, Any], trim: float, refresh_every: int, landmark_weight: float | None,
               fallback: Fallback | bool | None, device: str | None, threads: int | None) -> FitPlan:
-    """:func:`register`'s options checked and resolved (one line, StatfitError, for a bad one)."""
+    """:func:`register`'s options checked and resolved (one line, StatfitError, for a bad one). Where
+    ``model``'s modes hold (almost) no rigid motion (below NO_RIGID_MOTION of their variance: a model
+    fitted without it, :func:`statfit.model.cut.fitting_model`), the closed form moves the pose by
+    small rigid motions of POSE_STD."""
     if not 0 <= trim < 1:
         raise StatfitError(f"trim must lie in [0, 1), got {trim}")
     if refresh_every < 1:
@@ -76,7 +87,8 @@ def plan_fits(model: StatModel, method: str, preset: str, stages: tuple[Settings
         method_landmark_weight(fallback.method)
     return FitPlan(stages or resolve(method, preset, **overrides), weight, fallback, fallback_weight, trim,
                    refresh_every, preset != "paper", resolve_device(device, "register"),
-                   choose_threads(model.basis.size, threads), threads)
+                   choose_threads(model.basis.size, threads), threads,
+                   POSE_STD if rigid_motion_share(model) < NO_RIGID_MOTION else 0.0)
 
 
 def fit_start(space: FitSpace, query: ClosestPointQuery, points: torch.Tensor, normals: torch.Tensor | None,
@@ -99,11 +111,11 @@ def fit_start(space: FitSpace, query: ClosestPointQuery, points: torch.Tensor, n
     return shaped if far else space.mean.clone()
 
 
-def model_tensors(model: StatModel, device: torch.device, dtype: torch.dtype
-                  ) -> tuple[FitSpace, ClosestPointQuery]:
-    """The model in the fit frame as tensors, and its closest-point query: what every fit of the
-    model on ``device`` shares."""
-    return (FitSpace.of(model, model.frame, device, dtype),
+def model_tensors(model: StatModel, plan: FitPlan, dtype: torch.dtype) -> tuple[FitSpace, ClosestPointQuery]:
+    """The model in the fit frame as tensors (with ``plan``'s rigid motion for the closed form), and its
+    closest-point query: what every fit of the model on ``plan``'s device shares."""
+    device = plan.device
+    return (FitSpace.of(model, model.frame, device, dtype, plan.pose_std),
             ClosestPointQuery(model.faces, model.num_vertices, k=2, device=device))
 
 
@@ -153,13 +165,13 @@ class PosedScan:
     def __init__(self, model: StatModel, scan: Scan, points: np.ndarray, transform: Similarity, pose: dict | None,
                  shape: np.ndarray | None, device: torch.device, dtype: torch.dtype, trim: float, refresh_every: int,
                  region: str | None, region_faces: torch.Tensor | None, clutter: bool, landmarks: np.ndarray | None,
-                 shared: tuple[FitSpace, ClosestPointQuery] | None = None):
+                 shared: tuple[FitSpace, ClosestPointQuery]):
         self.model, self.transform, self.pose, self.shape = model, transform, pose, shape
         self.trim, self.refresh_every, self.clutter, self.landmarks = trim, refresh_every, clutter, landmarks
         self.region, self.region_faces = region, region_faces
         self.device, self.dtype = device, dtype
         self.frame = frame = model.frame
-        self.space, self.query = shared or model_tensors(model, device, dtype)
+        self.space, self.query = shared
         self.points = torch.as_tensor(frame.to_unit(transform.inverse_apply(points)), dtype=dtype, device=device)
         self.normals = torch.as_tensor(scan.normals @ transform.rotation, dtype=dtype, device=device)
 
@@ -189,7 +201,8 @@ class PosedScan:
                               "face region to keep the fit to the face: give it either (statfit model import MODEL "
                               "--landmarks FILE, or --masks FILE with a face region)", StatfitWarning, stacklevel=3)
         return cls(model, scan, points, transform, pose, shape if plan.start_from_pose else None, plan.device, dtype,
-                   plan.trim, plan.refresh_every, region, region_faces, clutter, landmarks, shared)
+                   plan.trim, plan.refresh_every, region, region_faces, clutter, landmarks,
+                   shared or model_tensors(model, plan, dtype))
 
     def to_scan_frame(self, x: torch.Tensor) -> np.ndarray:
         return self.transform.apply(self.frame.from_unit(x.detach().cpu().double().numpy()))
