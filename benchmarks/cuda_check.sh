@@ -20,11 +20,12 @@ workers=${WORKERS:-14}
 device=${DEVICE:-cuda}
 # The files to check first: those that failed at the last card run (session 43, the whole suite;
 # six batch tests by torch's lazy CUDA linear-algebra load raced on threads, mended since) and those
-# changed since (session 44: the pose search's second look). A run cut short by its limit has checked them. A second call on a warm machine is
-# sent a fresh tree: run this script again (it links the ICT data) rather than pytest alone.
+# changed since (session 44: the pose search's second look; session 45: the closed form's rigid motion).
+# A run cut short by its limit has checked them. A second call on a warm machine is sent a fresh tree:
+# run this script again (it links the ICT data) rather than pytest alone.
 first=${FIRST:-"tests/test_device.py tests/test_batch.py tests/test_batch_report.py tests/test_batch_landmarks.py
                 tests/test_params.py tests/test_cli_render.py tests/test_normalmap_io.py tests/test_pose_refusals.py
-                tests/test_pose_second_look.py"}
+                tests/test_pose_second_look.py tests/test_closed_form_pose.py"}
 cd "$(dirname "$0")/.."
 mkdir -p "$out"
 begin=$SECONDS
