@@ -166,9 +166,8 @@ def fitting_model(model: StatModel, rigid_modes: str = "auto", finds_pose: bool 
     """The model a fit uses: ``keep``, the model as given; ``drop``, :func:`without_rigid_motion`;
     ``auto``, without its modes' rigid motion where the fit ``finds_pose`` itself (the pose is then
     the fit's, not the modes') and that motion is more than :data:`MOSTLY_RIGID` of their variance
-    (a StatfitWarning says so) and some shape is left, else as given (``model`` itself: a caller tells
-    the two apart by identity). The fit's mesh is in the model's topology either way; the CLI's params
-    project it onto the given model."""
+    (a StatfitWarning says so) and some shape is left, else as given. The fit's mesh is in the
+    model's topology either way; the CLI's params project it onto the given model."""
     return fitting_model_and_rule(model, rigid_modes, finds_pose)[0]
 
 
@@ -227,7 +226,7 @@ def rigid_motion_distance(model: StatModel, rotation: np.ndarray, shift: np.ndar
 
 def rigid_motion_share(model: StatModel) -> float:
     """The share of the modes' variance that is small rigid motion of the template (0–1;
-    :func:`without_rigid_motion`): their projection's on the rigid motions (the basis is orthonormal)."""
+    :func:`without_rigid_motion`), from the modes' projection on the template's small rigid motions."""
     total = float((model.std**2).sum())
     motion = (rigid_motion_basis(model.template).T @ model.basis) * model.std        # (6, K)
     return min(float((motion**2).sum()) / total, 1.0) if total > 0 else 0.0
