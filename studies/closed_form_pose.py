@@ -15,6 +15,8 @@ mean along with the modes, each moving the vertices by ``pose_std`` RMS radii pe
   jobs fit without rigid motion: ICT's, the mask's and MakeHuman's people under MakeHuman's head,
   and under MakeHuman's face (the check family); 2 people, 4 halves; ``default`` and ``pca`` at
   ``pose_std`` 0 and 0.03 (the other methods have no closed-form stage: one row each);
+- ``weighted``: the ``pose`` cases fitted by ``pca`` with the landmarks as a fit term (its weight,
+  not 0), ``pose_std`` 0 and 0.03: whole one-view scans where the landmarks hold the fit too;
 - ``found``: §17's protocol (studies/cross_family.py: the same, without landmarks: each left or right
   half posed by the pose search) on the same pairs, 2 people, 2 halves, the same methods.
 
@@ -53,13 +55,24 @@ TARGET_RATIO = 1.5
 def fit_case(part: str, *args) -> dict:
     import statfit.registration.posed as posed
 
-    if part == "pose":
+    if part in ("pose", "weighted"):
+        from contextlib import nullcontext
+        from unittest import mock
+
+        import statfit.registration.job as job
         from mask_pose import pose_case
 
         sampled, seed, pose_std = args
         posed.POSE_STD = pose_std
-        return {"part": part, "sampled": sampled, "pose_std": pose_std} | pose_case("makehuman-face", seed, "auto",
-                                                                                    sampled)
+        register = job.register
+
+        def weighted(*given, landmark_weight=None, **options):
+            """The landmark-placed fit with the method's landmark term (the pose case asks for 0)."""
+            return register(*given, landmark_weight=None, **options)
+
+        with mock.patch.object(job, "register", weighted) if part == "weighted" else nullcontext():
+            row = pose_case("makehuman-face", seed, "auto", sampled)
+        return {"part": part, "sampled": sampled, "pose_std": pose_std} | row
     people, model, seed, half, method, pose_std = args
     posed.POSE_STD = pose_std
     if part == "found":
@@ -89,7 +102,9 @@ def runs() -> list[tuple]:
              for seed in HALF_SEEDS for half in ("left", "right")
              for method, pose_std in [(m, s) for m in SETTLED_METHODS for s in (0.0, SHIPPED)]
              + [(m, SHIPPED) for m in OTHER_METHODS]]
-    return pose + halves + found
+    weighted = [("weighted", sampled, seed, pose_std) for pose_std in (0.0, SHIPPED) for sampled in (True, False)
+                for seed in range(SEEDS)]
+    return pose + halves + found + weighted
 
 
 def _within(row: dict) -> bool:
@@ -133,8 +148,21 @@ def halves_report(rows: list[dict], found: bool) -> str:
     return (found_report if found else half_report)(named)
 
 
+def weighted_report(rows: list[dict]) -> str:
+    lines = ["| people | pose_std | `pca` with its landmark term (mm, mean) | cases |", "|---|---|---|---|"]
+    for sampled in (True, False):
+        for pose_std in (0.0, SHIPPED):
+            chosen = [r["placed_mm"] for r in rows if r["sampled"] == sampled and r["pose_std"] == pose_std]
+            if chosen:
+                lines.append(f"| {'its own samples' if sampled else 'held-out people'} | {pose_std:g} | "
+                             f"{np.mean(chosen):.2f} (median {np.median(chosen):.2f}) | {len(chosen)} |")
+    return "### The pose cases with the landmarks as a fit term\n\n" + "\n".join(lines)
+
+
 def report(rows: list[dict]) -> str:
     texts = [pose_report([r for r in rows if r["part"] == "pose"])]
+    if weighted := [r for r in rows if r["part"] == "weighted"]:
+        texts.append(weighted_report(weighted))
     for part, title in (("halves", "§19's protocol: halves with their landmarks"),
                         ("found", "§17's protocol: halves posed without landmarks")):
         chosen = [r for r in rows if r["part"] == part]
@@ -144,8 +172,8 @@ def report(rows: list[dict]) -> str:
 
 
 def _key(row: dict) -> tuple:
-    if row["part"] == "pose":
-        return ("pose", row["sampled"], row["seed"], row["pose_std"])
+    if row["part"] in ("pose", "weighted"):
+        return (row["part"], row["sampled"], row["seed"], row["pose_std"])
     return (row["part"], row["people"], row["model"], row["seed"], row["half"], row["method"], row["pose_std"])
 
 
