@@ -23,13 +23,14 @@ def test_the_six_rows_are_the_means_small_rigid_motions_at_the_size_asked(embedd
     assert basis_t.shape == (k + 6, 3 * n) and torch.equal(basis_t[:k], space.basis_t)
     rigid = basis_t[k:].numpy().T
     np.testing.assert_allclose(rigid.T @ rigid, np.eye(6), atol=1e-12)
-    fields = rigid_fields(space.mean.numpy())       # translations and turns through the centroid, solved
+    fields = rigid_fields(space.mean.numpy())       # built here: translations and turns through the centroid
     np.testing.assert_allclose(rigid @ (rigid.T @ fields), fields, atol=1e-10)
     assert np.abs(space.basis_t.numpy() @ rigid).max() < 1e-9       # the modes hold none of it
     # one standard deviation of a row moves the vertices by pose_std RMS
     np.testing.assert_allclose(std[k:].numpy() * np.sqrt((rigid**2).sum(axis=0) / n), 0.03, rtol=1e-12)
-    plain = FitSpace.of(embedded_model)
-    assert plain.closed_form_modes() == (plain.basis_t, plain.std)
+    plain = FitSpace.of(embedded_model)             # pose_std 0: the modes alone
+    plain_basis_t, plain_std = plain.closed_form_modes()
+    assert plain_basis_t is plain.basis_t and plain_std is plain.std
 
 
 def test_only_a_model_without_rigid_motion_gets_it(embedded_model):
