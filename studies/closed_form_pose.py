@@ -23,7 +23,7 @@ mean along with the modes, each moving the vertices by ``pose_std`` RMS radii pe
 ICT's head (21% rigid), its mask (30%), the embedded head (12%) and MakeHuman's body (73%) keep their
 modes' rigid motion and run the code before to the bit (the closed form's rows are the modes alone).
 
-    python studies/closed_form_pose.py            # ~40 min on 2 cores
+    python studies/closed_form_pose.py            # ~50 min on 2 cores
     python studies/closed_form_pose.py --report
 """
 from __future__ import annotations
