@@ -94,14 +94,11 @@ def runs() -> list[tuple]:
     build_all(["makehuman-face", "ict", "ict-mask", "makehuman"], SEEDS)
     pose = [("pose", sampled, seed, pose_std) for pose_std in POSE_STDS for sampled in (True, False)
             for seed in range(SEEDS)]
+    methods = [(m, s) for m in SETTLED_METHODS for s in (0.0, SHIPPED)] + [(m, SHIPPED) for m in OTHER_METHODS]
     halves = [("halves", people, model, seed, half, method, pose_std) for people, model in PAIRS
-              for seed in HALF_SEEDS for half in HALVES
-              for method, pose_std in [(m, s) for m in SETTLED_METHODS for s in (0.0, SHIPPED)]
-              + [(m, SHIPPED) for m in OTHER_METHODS]]
+              for seed in HALF_SEEDS for half in HALVES for method, pose_std in methods]
     found = [("found", people, model, seed, half, method, pose_std) for people, model in PAIRS
-             for seed in HALF_SEEDS for half in ("left", "right")
-             for method, pose_std in [(m, s) for m in SETTLED_METHODS for s in (0.0, SHIPPED)]
-             + [(m, SHIPPED) for m in OTHER_METHODS]]
+             for seed in HALF_SEEDS for half in ("left", "right") for method, pose_std in methods]
     weighted = [("weighted", sampled, seed, pose_std) for pose_std in (0.0, SHIPPED) for sampled in (True, False)
                 for seed in range(SEEDS)]
     return pose + halves + found + weighted
