@@ -282,7 +282,7 @@ def info(
     refuse_missing({}, model_path)
 
     # The library loads once the paths are known good: a mistyped name is refused at once.
-    from statfit.model.cut import MOSTLY_RIGID, rigid_motion_share
+    from statfit.model.cut import MOSTLY_RIGID, NO_RIGID_MOTION, rigid_motion_share
     from statfit.model.importers import unread_npz_keys
     from statfit.model.importers.cache import open_model
     from statfit.model.statmodel import units_guess
@@ -315,8 +315,11 @@ def info(
         elif isinstance(value, list):
             value = " × ".join(f"{v:.4g}" for v in value)
         elif key == "rigid_motion_share":
-            fitted = "fits drop it" if value > MOSTLY_RIGID else "fits keep it"
-            value = f"{value:.1%} of the modes' variance ({fitted}: --rigid-modes auto)"
+            if value < NO_RIGID_MOTION:
+                value = f"{value:.1%} of the modes' variance (none to drop: register's closed form moves the pose)"
+            else:
+                fitted = "fits drop it" if value > MOSTLY_RIGID else "fits keep it"
+                value = f"{value:.1%} of the modes' variance ({fitted}: --rigid-modes auto)"
         elif isinstance(value, float):
             value = f"{value:.4g}"
         table.add_row(key.replace("_", " "), str(value))

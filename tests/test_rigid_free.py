@@ -79,6 +79,9 @@ def test_model_cut_takes_a_parts_rigid_motion_out_and_info_shows_the_share(tmp_p
     for path, share in ((tmp_path / "moving.npz", expected), (tmp_path / "face.npz", 0.0)):
         code, out, err = run(["model", "info", str(path), "--json"], capsys)
         assert code == 0 and json.loads(out)["rigid_motion_share"] == pytest.approx(share, abs=1e-9), out
+    for path, says in ((tmp_path / "moving.npz", "fits keep it"), (tmp_path / "face.npz", "closed form moves the pose")):
+        code, out, err = run(["model", "info", str(path)], capsys)
+        assert code == 0 and says in " ".join(out.replace("│", " ").split()), out    # the table's cells wrap
 
 
 def test_a_model_whose_modes_only_move_it_is_refused_in_one_line(tmp_path, embedded_model, capsys):

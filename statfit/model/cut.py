@@ -140,6 +140,10 @@ RIGID_MODES = ("auto", "keep", "drop")
 # body model lies at 73% (a taller body's centroid is higher): its studies were made as built and it
 # was not measured without, so it keeps them.
 MOSTLY_RIGID = 0.9
+# Modes with less than this share of rigid motion hold none to speak of (a model fitted without it):
+# `register`'s closed form then moves the pose itself (statfit.registration.posed.POSE_STD; docs/studies.md
+# §47). ICT's head holds 21%, its mask 30%, the embedded head 12%.
+NO_RIGID_MOTION = 0.01
 
 
 # In a job whose alignment finds the pose before the fit (``render``), ``auto`` also drops it, on a

@@ -22,7 +22,7 @@ from statfit.errors import DivergenceError, StatfitError, StatfitWarning
 from statfit.geometry.align import Similarity
 from statfit.geometry.closest import ClosestPointQuery
 from statfit.geometry.metrics import inside_distance
-from statfit.model.cut import rigid_motion_share
+from statfit.model.cut import NO_RIGID_MOTION, rigid_motion_share
 from statfit.model.params import project
 from statfit.model.statmodel import StatModel, face_triangles, region_triangles, scalp_triangles
 from statfit.objectives.landmarks import LandmarkObjective, WithLandmarks
@@ -39,8 +39,7 @@ FAR_DISTANCE = 0.25
 RUNAWAY = 10.0
 # A model whose modes hold less than NO_RIGID_MOTION of their variance in rigid motion (one fitted without
 # it) cannot move the pose a fit was given; its closed-form stage moves it by small rigid motions of
-# POSE_STD per standard deviation (RMS radii; docs/studies.md §47). ICT's head holds 21%, its mask 30%.
-NO_RIGID_MOTION = 0.01
+# POSE_STD per standard deviation (RMS radii; docs/studies.md §47).
 POSE_STD = 0.03
 
 
