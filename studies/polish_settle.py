@@ -160,8 +160,8 @@ def report(rows: list[dict]) -> str:
             mine = [r for r in people if r["model"] == model == r["subject"] and r["clutter"] == clutter
                     and all(f"vertex_mm_{v}" in r for v in names)]
             # MakeHuman's head modes move the head as the body's height does: the pose alone is no place
-            cells = [_short([r[f"offset_mm_{v}"] for r in mine]) if model != "makehuman" else "–" for v in names]
-            cells += [_short([r[f"vertex_mm_{v}"] for r in mine]) for v in names]
+            cells = [short([r[f"offset_mm_{v}"] for r in mine]) if model != "makehuman" else "–" for v in names]
+            cells += [short([r[f"vertex_mm_{v}"] for r in mine]) for v in names]
             cells += [f"{sum(r[f'vertex_mm_{v}'] > 1.05 * r['vertex_mm_before'] for r in mine)} / "
                       f"{sum(r[f'vertex_mm_{v}'] < r['vertex_mm_before'] / 1.05 for r in mine)}" for v in names[1:]]
             lines.append(f"| {model} | {clutter} | {len(mine)} | " + " | ".join(cells) + " |")
@@ -171,8 +171,8 @@ def report(rows: list[dict]) -> str:
               "| people | scans | refused | right refused | wrong accepted | right poses' angle ° | s |",
               "|---|---|---|---|---|---|---|"]
     for subject in FAMILIES:
-        lines.append(_pair_row(subject, [r for r in people if r["subject"] == subject]))
-    lines.append(_pair_row("all", people))
+        lines.append(pair_row(subject, [r for r in people if r["subject"] == subject]))
+    lines.append(pair_row("all", people))
     lines += ["", "Shapes accepted (of " + str(len(shapes)) + "): " + " → ".join(
         str(sum(r[f"decision_{v}"] != "refuse" for r in shapes)) for v in names)]
     for r in shapes:
@@ -187,16 +187,18 @@ def report(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def _short(values: list[float]) -> str:
+def short(values: list[float]) -> str:
+    """Mean / largest of ``values``, or a dash."""
     import numpy as np
 
     return f"{np.mean(values):.2f} / {max(values):.2f}" if values else "–"
 
 
-def _pair_row(label: str, rows: list[dict]) -> str:
+def pair_row(label: str, rows: list[dict], names: list[str] | None = None) -> str:
+    """A table row of people ``rows`` for the variants ``names`` (default: this study's), before → after."""
     import numpy as np
 
-    names = list(VARIANTS)
+    names = names or list(VARIANTS)
     cells = []
     for test in (lambda r, v: r[f"decision_{v}"] == "refuse",
                  lambda r, v: r[f"decision_{v}"] == "refuse" and _right(r, v),
