@@ -33,8 +33,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(ROOT / "studies"))
 
-from polish_settle import pair_row, short  # noqa: E402
-from pose_refusals import CLUTTER, FAMILIES, SHAPES, recording, shape_scan  # noqa: E402
+from polish_settle import compare, pair_row, short  # noqa: E402
+from pose_refusals import CLUTTER, FAMILIES, SHAPES  # noqa: E402
 from study_runs import study_main  # noqa: E402
 
 RESULTS = ROOT / "studies" / "results" / "polish_converge.json"
@@ -56,65 +56,7 @@ def with_variant(variant: str, run):
 
 
 def run_case(model_name: str, subject: str, seed: int, clutter: float) -> dict:
-    import time
-    import warnings
-
-    import numpy as np
-    import torch
-    from families import family_model, person
-
-    import statfit.registration.pose.search as search
-    from statfit.errors import StatfitError
-    from statfit.registration.job import register
-    from statfit.registration.pose.hypotheses import angle_between
-    from statfit.structures.scan import Scan
-    from statfit.synth.scanner import realistic_scan
-
-    torch.set_num_threads(1)
-    model = family_model(model_name)
-    row = {"model": model_name, "subject": subject, "seed": seed, "clutter": clutter}
-    made = None
-    if subject in FAMILIES:
-        rng = np.random.default_rng(seed)
-        made = realistic_scan(person(subject, seed), family_model(subject).faces, rng, 4300,
-                              yaw_deg=rng.uniform(-40, 40), clutter=clutter, units="mm", posed=True)
-        scan = Scan.from_mesh(made.vertices, made.faces)
-    else:
-        scan = shape_scan(model_name, subject, seed)
-    fits = {}       # the register default's error by pose (a pose unchanged by a variant is not refitted)
-    for variant in VARIANTS:
-        checked, facts = search.check_plausible, {}
-        search.check_plausible = recording(checked, facts)
-        began = time.perf_counter()
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                found = with_variant(variant, lambda: search.estimate_pose(model, scan, threads=1))
-        except StatfitError:
-            found, facts["decision"] = None, "refuse"
-        finally:
-            search.check_plausible = checked
-        row.update({f"{key}_{variant}": value for key, value in facts.items()})
-        row[f"seconds_{variant}"] = time.perf_counter() - began
-        if found is None or made is None:
-            continue
-        row[f"degrees_{variant}"] = angle_between(found.transform.rotation, made.transform.rotation)
-        own = person(subject, seed)     # the person's place: the mean offset of their own vertices
-        offset = (found.transform.apply(own) - made.transform.apply(own)).mean(axis=0)
-        row[f"offset_mm_{variant}"] = float(np.linalg.norm(offset))
-        if subject == model_name and facts["decision"] != "refuse":
-            key = found.transform.as_matrix().tobytes() + found.coefficients.tobytes()
-            if key not in fits:
-                try:
-                    with warnings.catch_warnings():
-                        warnings.simplefilter("ignore")
-                        fitted = with_variant(variant, lambda: register(model, scan, threads=1).vertices)
-                    fits[key] = float(np.linalg.norm(fitted - made.truth, axis=1).mean())
-                except StatfitError:        # the jobs' model (§44's rule) may refuse what the model as built takes
-                    fits[key] = None
-            if fits[key] is not None:
-                row[f"vertex_mm_{variant}"] = fits[key]
-    return row
+    return compare(model_name, subject, seed, clutter, list(VARIANTS), with_variant)
 
 
 def runs() -> list[tuple]:
