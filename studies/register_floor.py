@@ -14,7 +14,7 @@ mode):
 and ``mean``, the model's mean placed by the landmarks (no fit: the bar of issue 37's per-case target).
 One thread a fit, two side by side; ``held`` in mm.
 
-    python studies/register_floor.py            # ~25 min on 2 cores
+    python studies/register_floor.py            # ~30 min on 2 cores
     python studies/register_floor.py --report
 """
 from __future__ import annotations
