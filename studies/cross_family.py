@@ -13,7 +13,7 @@ the other half is the test:
   covers: a mask cannot be asked about the back of a head);
 - ``seen``: the same for the fitted half's points.
 
-"mean" is the model's mean placed by the same pose search (no shape fitted): the bar every fit must
+"mean" is the model's mean placed by the pose search register runs (no shape fitted): the bar every fit must
 beat. Distances need no vertex correspondence, so any model can be scored on any person.
 
     python studies/cross_family.py --people 2          # all pairs; cases run two at a time
@@ -70,6 +70,7 @@ def fit_case(people: str, model_family: str, seed: int, half: str, method: str) 
     from families import family_model
     from statfit.core.threads import flush_denormals_everywhere
     from default_candidates import register_candidate
+    from statfit.model.cut import fitting_model
     from statfit.registration.pose.search import estimate_pose
     from statfit.structures.scan import Scan
 
@@ -82,8 +83,9 @@ def fit_case(people: str, model_family: str, seed: int, half: str, method: str) 
     model = family_model(model_family)
     row = {"people": people, "model": model_family, "seed": seed, "half": half, "method": method}
     try:
-        if method == "mean":
-            vertices, seconds, fallback = estimate_pose(model, fitted_half).transform.apply(model.template), 0.0, None
+        if method == "mean":    # posed as register poses it: by the model it fits (without its modes' rigid motion
+            posed = fitting_model(model)    # where that is most of them, §44), or the pose leaves it to the modes
+            vertices, seconds, fallback = estimate_pose(posed, fitted_half).transform.apply(model.template), 0.0, None
         else:
             result = register_candidate(method, model, fitted_half, threads=1)
             vertices, seconds, fallback = result.vertices, result.seconds, result.fallback
