@@ -22,6 +22,7 @@ from __future__ import annotations
 import functools
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
@@ -32,6 +33,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import register_sensitivity as floor  # noqa: E402
 from families import LANDMARKED  # noqa: E402
 from study_runs import study_main  # noqa: E402
+
+if TYPE_CHECKING:
+    from statfit.geometry.align import Similarity
+    from statfit.model.statmodel import StatModel
+    from statfit.registration.pose.search import PoseEstimate
+    from statfit.structures.scan import Scan
 
 RESULTS = ROOT / "studies" / "results" / "register_floor.json"
 VARIANTS = ("shipped", "polish settles", "polish prior 0.03", "polish prior 0.1", "polish averaged")
@@ -53,7 +60,8 @@ def use_variant(variant: str) -> None:
         prealign.refine_pose = functools.partial(averaged_refine_pose, search.refine_pose)
 
 
-def averaged_refine_pose(refine_pose, model, scan, start, seed: int = 0):
+def averaged_refine_pose(refine_pose: Callable, model: StatModel, scan: Scan, start: Similarity,
+                         seed: int = 0) -> PoseEstimate:
     """``refine_pose`` run AVERAGED times on other subsamples (seeds), the poses and coefficients averaged."""
     from dataclasses import replace
 
@@ -90,7 +98,8 @@ def report(rows: list[dict]) -> str:
     held = {v: {(case(r), r["nudge"]): r["held"] for r in rows if r["variant"] == v and "held" in r} for v in variants}
     lines = [f"Per pair: held-out error (mm, mean of the fits as given and nudged) / mean |nudged ÷ given − 1| / "
              f"cases where either fit is over {OVER_MEAN}× the landmark-placed mean's.", "",
-             "| people | model | mean (no fit) | " + " | ".join(variants) + " |", "|---|---|---|" + "---|" * len(variants)]
+             "| people | model | mean (no fit) | " + " | ".join(variants) + " |",
+             "|---|---|---|" + "---|" * len(variants)]
     summary = {v: [] for v in variants}
     for people in LANDMARKED:
         for model in LANDMARKED:
@@ -105,7 +114,8 @@ def report(rows: list[dict]) -> str:
                 cells.append(f"{(given.mean() + nudged.mean()) / 2:.2f} / {np.abs(nudged / given - 1).mean():.3f} / "
                              f"{int((np.maximum(given, nudged) > OVER_MEAN * bar).sum())}" if both else "–")
             if pair:
-                lines.append(f"| {people} | {model} | {np.mean([means[c] for c in pair]):.2f} | " + " | ".join(cells) + " |")
+                lines.append(f"| {people} | {model} | {np.mean([means[c] for c in pair]):.2f} | "
+                             + " | ".join(cells) + " |")
     lines += ["", "| variant | cases | held-out (mm) | mean \\|nudged ÷ given − 1\\| | moved by > 10% | "
                   f"over {OVER_MEAN}× the mean's (either fit) |", "|---|---|---|---|---|---|"]
     for v in variants:
