@@ -46,18 +46,23 @@ AVERAGED = 4
 OVER_MEAN = 1.1     # issue 37's per-case bound: no case worse than the unfitted mean by more than 10%
 
 
-def use_variant(variant: str) -> None:
-    """Patch this (spawned) process's landmark-placed pose polish to ``variant``."""
+def under_variant(variant: str, run: Callable[[], dict]) -> dict:
+    """``run()`` with the landmark-placed pose's polish patched to ``variant``, restored after: a
+    spawned worker runs cases of several variants in turn."""
+    from statfit.registration import prealign
     from statfit.registration.pose import refinement, search
 
+    shipped = search.polish_pose, refinement.POLISH_NOISE, prealign.refine_pose
     if variant == "polish settles":
         search.polish_pose = functools.partial(refinement.polish_pose, settle=True)
     elif variant.startswith("polish prior "):
         refinement.POLISH_NOISE = float(variant.removeprefix("polish prior "))
     elif variant == "polish averaged":
-        from statfit.registration import prealign
-
         prealign.refine_pose = functools.partial(averaged_refine_pose, search.refine_pose)
+    try:
+        return run()
+    finally:
+        search.polish_pose, refinement.POLISH_NOISE, prealign.refine_pose = shipped
 
 
 def averaged_refine_pose(refine_pose: Callable, model: StatModel, scan: Scan, start: Similarity,
@@ -82,8 +87,7 @@ def fit(variant: str, people: str, model_family: str, seed: int, half: str, nudg
         import cross_family_landmarks as protocol
 
         return protocol.fit_case(people, model_family, seed, half, "mean") | {"nudge": nudge, "variant": variant}
-    use_variant(variant)
-    return floor.fit(people, model_family, seed, half, nudge) | {"variant": variant}
+    return under_variant(variant, lambda: floor.fit(people, model_family, seed, half, nudge)) | {"variant": variant}
 
 
 def runs() -> list[tuple]:
